@@ -1,0 +1,845 @@
+//! Runtime values that flow along edges. Heavy payloads sit behind `Arc`, so a value is shared
+//! between all its consumers without copying.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use crate::types::PortType;
+
+/// Errors building a value from raw parts.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ValueError {
+    /// The pixel buffer does not hold `width × height × channels` samples.
+    #[error(
+        "image buffer holds {actual} samples, but {width}×{height}×{channels} needs {expected}"
+    )]
+    ImageSize {
+        /// Width in pixels.
+        width: usize,
+        /// Height in pixels.
+        height: usize,
+        /// Channels per pixel.
+        channels: usize,
+        /// Samples expected.
+        expected: usize,
+        /// Samples present.
+        actual: usize,
+    },
+    /// The matrix buffer does not hold `rows × cols` entries.
+    #[error("matrix buffer holds {actual} entries, but {rows}×{cols} needs {}", rows * cols)]
+    MatrixSize {
+        /// Rows.
+        rows: usize,
+        /// Columns.
+        cols: usize,
+        /// Entries present.
+        actual: usize,
+    },
+    /// Image dimensions overflow memory addressing.
+    #[error("image dimensions {width}×{height}×{channels} overflow")]
+    TooLarge {
+        /// Width in pixels.
+        width: usize,
+        /// Height in pixels.
+        height: usize,
+        /// Channels per pixel.
+        channels: usize,
+    },
+}
+
+/// Channel layout of an image, interleaved.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Channels {
+    /// One luminance channel.
+    Gray,
+    /// Red, green, blue.
+    Rgb,
+    /// Red, green, blue, alpha (straight, not premultiplied).
+    Rgba,
+}
+
+impl Channels {
+    /// Samples per pixel.
+    pub fn count(self) -> usize {
+        match self {
+            Channels::Gray => 1,
+            Channels::Rgb => 3,
+            Channels::Rgba => 4,
+        }
+    }
+
+    /// Lower-case name (`gray`, `rgb`, `rgba`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Channels::Gray => "gray",
+            Channels::Rgb => "rgb",
+            Channels::Rgba => "rgba",
+        }
+    }
+}
+
+/// Sample type of an image.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Depth {
+    /// 8-bit unsigned, 0..=255.
+    U8,
+    /// 16-bit unsigned, 0..=65535.
+    U16,
+    /// 32-bit float; by convention 0.0..=1.0 for display, but any finite value is allowed.
+    F32,
+}
+
+impl Depth {
+    /// Lower-case name (`u8`, `u16`, `f32`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Depth::U8 => "u8",
+            Depth::U16 => "u16",
+            Depth::F32 => "f32",
+        }
+    }
+
+    /// Bytes per sample.
+    pub fn bytes(self) -> usize {
+        match self {
+            Depth::U8 => 1,
+            Depth::U16 => 2,
+            Depth::F32 => 4,
+        }
+    }
+}
+
+/// Pixel format: channel layout × sample type.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct PixelFormat {
+    /// Channel layout.
+    pub channels: Channels,
+    /// Sample type.
+    pub depth: Depth,
+}
+
+impl std::fmt::Display for PixelFormat {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}_{}", self.channels.name(), self.depth.name())
+    }
+}
+
+/// Interleaved samples of an image, row-major, no padding between rows.
+#[derive(Debug, Clone, PartialEq)]
+pub enum PixelData {
+    /// 8-bit samples.
+    U8(Vec<u8>),
+    /// 16-bit samples.
+    U16(Vec<u16>),
+    /// 32-bit float samples.
+    F32(Vec<f32>),
+}
+
+impl PixelData {
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        match self {
+            PixelData::U8(v) => v.len(),
+            PixelData::U16(v) => v.len(),
+            PixelData::F32(v) => v.len(),
+        }
+    }
+
+    /// True when there are no samples.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The sample type.
+    pub fn depth(&self) -> Depth {
+        match self {
+            PixelData::U8(_) => Depth::U8,
+            PixelData::U16(_) => Depth::U16,
+            PixelData::F32(_) => Depth::F32,
+        }
+    }
+}
+
+/// A raster image: `width × height` pixels of `channels`, interleaved, row-major, row stride
+/// `width × channels` samples. Zero-sized images (0×N, N×0) are valid values.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Image {
+    width: usize,
+    height: usize,
+    channels: Channels,
+    data: PixelData,
+}
+
+impl Image {
+    /// Builds an image, checking that `data` holds exactly `width × height × channels` samples.
+    pub fn new(
+        width: usize,
+        height: usize,
+        channels: Channels,
+        data: PixelData,
+    ) -> Result<Image, ValueError> {
+        let expected = Self::sample_count(width, height, channels)?;
+        if data.len() != expected {
+            return Err(ValueError::ImageSize {
+                width,
+                height,
+                channels: channels.count(),
+                expected,
+                actual: data.len(),
+            });
+        }
+        Ok(Image {
+            width,
+            height,
+            channels,
+            data,
+        })
+    }
+
+    /// Samples needed for the given size, or an overflow error.
+    pub fn sample_count(
+        width: usize,
+        height: usize,
+        channels: Channels,
+    ) -> Result<usize, ValueError> {
+        width
+            .checked_mul(height)
+            .and_then(|n| n.checked_mul(channels.count()))
+            .filter(|n| n.checked_mul(4).is_some())
+            .ok_or(ValueError::TooLarge {
+                width,
+                height,
+                channels: channels.count(),
+            })
+    }
+
+    /// A zero-filled image of the given format.
+    pub fn zeros(width: usize, height: usize, format: PixelFormat) -> Result<Image, ValueError> {
+        let n = Self::sample_count(width, height, format.channels)?;
+        let data = match format.depth {
+            Depth::U8 => PixelData::U8(vec![0; n]),
+            Depth::U16 => PixelData::U16(vec![0; n]),
+            Depth::F32 => PixelData::F32(vec![0.0; n]),
+        };
+        Self::new(width, height, format.channels, data)
+    }
+
+    /// 8-bit image from samples.
+    pub fn from_u8(
+        width: usize,
+        height: usize,
+        channels: Channels,
+        data: Vec<u8>,
+    ) -> Result<Image, ValueError> {
+        Self::new(width, height, channels, PixelData::U8(data))
+    }
+
+    /// 16-bit image from samples.
+    pub fn from_u16(
+        width: usize,
+        height: usize,
+        channels: Channels,
+        data: Vec<u16>,
+    ) -> Result<Image, ValueError> {
+        Self::new(width, height, channels, PixelData::U16(data))
+    }
+
+    /// Float image from samples.
+    pub fn from_f32(
+        width: usize,
+        height: usize,
+        channels: Channels,
+        data: Vec<f32>,
+    ) -> Result<Image, ValueError> {
+        Self::new(width, height, channels, PixelData::F32(data))
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Channel layout.
+    pub fn channels(&self) -> Channels {
+        self.channels
+    }
+
+    /// Sample type.
+    pub fn depth(&self) -> Depth {
+        self.data.depth()
+    }
+
+    /// Pixel format.
+    pub fn format(&self) -> PixelFormat {
+        PixelFormat {
+            channels: self.channels,
+            depth: self.depth(),
+        }
+    }
+
+    /// The samples.
+    pub fn data(&self) -> &PixelData {
+        &self.data
+    }
+
+    /// Consumes the image, returning its samples.
+    pub fn into_data(self) -> PixelData {
+        self.data
+    }
+
+    /// Samples per row.
+    pub fn row_stride(&self) -> usize {
+        self.width * self.channels.count()
+    }
+
+    /// True for a zero-area image.
+    pub fn is_empty(&self) -> bool {
+        self.width == 0 || self.height == 0
+    }
+
+    /// 8-bit samples, if this is a u8 image.
+    pub fn as_u8(&self) -> Option<&[u8]> {
+        match &self.data {
+            PixelData::U8(v) => Some(v),
+            _ => None,
+        }
+    }
+
+    /// 16-bit samples, if this is a u16 image.
+    pub fn as_u16(&self) -> Option<&[u16]> {
+        match &self.data {
+            PixelData::U16(v) => Some(v),
+            _ => None,
+        }
+    }
+
+    /// Float samples, if this is an f32 image.
+    pub fn as_f32(&self) -> Option<&[f32]> {
+        match &self.data {
+            PixelData::F32(v) => Some(v),
+            _ => None,
+        }
+    }
+
+    /// Bytes held by the samples.
+    pub fn byte_size(&self) -> usize {
+        self.data.len() * self.depth().bytes()
+    }
+}
+
+/// An image keypoint, OpenCV's `KeyPoint` fields.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Keypoint {
+    /// Column, pixels (0 = centre of the left-most pixel).
+    pub x: f32,
+    /// Row, pixels.
+    pub y: f32,
+    /// Diameter of the meaningful neighbourhood, pixels.
+    pub size: f32,
+    /// Orientation in degrees, 0..360, or -1 if not computed.
+    pub angle: f32,
+    /// Detector response (larger is stronger).
+    pub response: f32,
+    /// Pyramid octave the keypoint was found in.
+    pub octave: i32,
+}
+
+/// Feature descriptors, one row per keypoint.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Descriptors {
+    /// Float descriptors (SIFT-like), `dim` floats per row.
+    Float {
+        /// Floats per descriptor.
+        dim: usize,
+        /// Row-major rows.
+        data: Vec<f32>,
+    },
+    /// Binary descriptors (ORB-like), `bytes` bytes per row, compared by Hamming distance.
+    Binary {
+        /// Bytes per descriptor.
+        bytes: usize,
+        /// Row-major rows.
+        data: Vec<u8>,
+    },
+}
+
+impl Descriptors {
+    /// Number of descriptors.
+    pub fn len(&self) -> usize {
+        match self {
+            Descriptors::Float { dim, data } => data.len().checked_div(*dim).unwrap_or(0),
+            Descriptors::Binary { bytes, data } => data.len().checked_div(*bytes).unwrap_or(0),
+        }
+    }
+
+    /// True when there are no descriptors.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// A correspondence between descriptor `query` of the first set and `train` of the second.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Match {
+    /// Index into the first (query) set.
+    pub query: u32,
+    /// Index into the second (train) set.
+    pub train: u32,
+    /// Descriptor distance (L2 or Hamming).
+    pub distance: f32,
+}
+
+/// A dense row-major matrix of f64.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Matrix {
+    /// Number of rows.
+    pub rows: usize,
+    /// Number of columns.
+    pub cols: usize,
+    /// Row-major entries, `rows × cols` of them.
+    pub data: Vec<f64>,
+}
+
+impl Matrix {
+    /// Builds a matrix, checking the buffer size.
+    pub fn new(rows: usize, cols: usize, data: Vec<f64>) -> Result<Matrix, ValueError> {
+        if rows.checked_mul(cols) != Some(data.len()) {
+            return Err(ValueError::MatrixSize {
+                rows,
+                cols,
+                actual: data.len(),
+            });
+        }
+        Ok(Matrix { rows, cols, data })
+    }
+
+    /// Entry at (row, col), if in range.
+    pub fn get(&self, row: usize, col: usize) -> Option<f64> {
+        if row < self.rows && col < self.cols {
+            self.data.get(row * self.cols + col).copied()
+        } else {
+            None
+        }
+    }
+}
+
+/// Camera projection models, with COLMAP's parameter orders.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+pub enum CameraModel {
+    /// `f, cx, cy`.
+    SimplePinhole,
+    /// `fx, fy, cx, cy`.
+    Pinhole,
+    /// `f, cx, cy, k`.
+    SimpleRadial,
+    /// `f, cx, cy, k1, k2`.
+    Radial,
+    /// `fx, fy, cx, cy, k1, k2, p1, p2` (OpenCV's first four distortion terms).
+    OpenCv,
+}
+
+impl CameraModel {
+    /// COLMAP's model name (`PINHOLE`, `OPENCV`, ...).
+    pub fn colmap_name(self) -> &'static str {
+        match self {
+            CameraModel::SimplePinhole => "SIMPLE_PINHOLE",
+            CameraModel::Pinhole => "PINHOLE",
+            CameraModel::SimpleRadial => "SIMPLE_RADIAL",
+            CameraModel::Radial => "RADIAL",
+            CameraModel::OpenCv => "OPENCV",
+        }
+    }
+
+    /// Number of parameters the model takes.
+    pub fn param_count(self) -> usize {
+        match self {
+            CameraModel::SimplePinhole => 3,
+            CameraModel::Pinhole => 4,
+            CameraModel::SimpleRadial => 4,
+            CameraModel::Radial => 5,
+            CameraModel::OpenCv => 8,
+        }
+    }
+}
+
+/// Camera intrinsics: model, image size and parameters in the model's order.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Camera {
+    /// Projection model.
+    pub model: CameraModel,
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// Parameters, `model.param_count()` of them.
+    pub params: Vec<f64>,
+}
+
+/// A rigid transform `x_to = R · x_from + t`. Its name at the use site says which frames it maps
+/// (e.g. `camera_from_world`).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Pose {
+    /// Unit quaternion `[w, x, y, z]`.
+    pub rotation: [f64; 4],
+    /// Translation.
+    pub translation: [f64; 3],
+}
+
+impl Pose {
+    /// The identity transform.
+    pub const IDENTITY: Pose = Pose {
+        rotation: [1.0, 0.0, 0.0, 0.0],
+        translation: [0.0, 0.0, 0.0],
+    };
+}
+
+/// 3-D points with optional per-point colors and normals.
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct PointCloud {
+    /// Positions.
+    pub positions: Vec<[f32; 3]>,
+    /// sRGB colors, one per point, if present.
+    pub colors: Option<Vec<[u8; 3]>>,
+    /// Unit normals, one per point, if present.
+    pub normals: Option<Vec<[f32; 3]>>,
+}
+
+/// One observation in a track: keypoint `keypoint` of image `image`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct TrackElement {
+    /// Image index.
+    pub image: u32,
+    /// Keypoint index in that image.
+    pub keypoint: u32,
+}
+
+/// Feature tracks: each is the set of observations of one scene point.
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct Tracks {
+    /// The tracks.
+    pub tracks: Vec<Vec<TrackElement>>,
+}
+
+/// A posed image of a reconstruction.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ReconImage {
+    /// Image id (COLMAP `IMAGE_ID`).
+    pub id: u32,
+    /// Camera id (COLMAP `CAMERA_ID`).
+    pub camera_id: u32,
+    /// Image name.
+    pub name: String,
+    /// World-to-camera transform.
+    pub camera_from_world: Pose,
+    /// 2-D observations: position and the id of the 3-D point it sees, if any.
+    pub points2d: Vec<([f64; 2], Option<u64>)>,
+}
+
+/// A triangulated 3-D point of a reconstruction.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ReconPoint {
+    /// Point id (COLMAP `POINT3D_ID`).
+    pub id: u64,
+    /// Position in world coordinates.
+    pub position: [f64; 3],
+    /// sRGB color.
+    pub color: [u8; 3],
+    /// Mean reprojection error, pixels.
+    pub error_px: f64,
+    /// Observations: (image id, index into that image's `points2d`).
+    pub track: Vec<(u32, u32)>,
+}
+
+/// A sparse reconstruction, COLMAP's model.
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct Reconstruction {
+    /// Cameras by id.
+    pub cameras: BTreeMap<u32, Camera>,
+    /// Posed images.
+    pub images: Vec<ReconImage>,
+    /// 3-D points.
+    pub points: Vec<ReconPoint>,
+}
+
+/// An indexed triangle mesh.
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct Mesh {
+    /// Vertex positions.
+    pub positions: Vec<[f32; 3]>,
+    /// Triangles as counter-clockwise vertex index triples.
+    pub triangles: Vec<[u32; 3]>,
+    /// Per-vertex unit normals, if present.
+    pub normals: Option<Vec<[f32; 3]>>,
+    /// Per-vertex texture coordinates, if present.
+    pub uvs: Option<Vec<[f32; 2]>>,
+    /// Per-vertex linear RGB colors, if present.
+    pub colors: Option<Vec<[f32; 3]>>,
+}
+
+/// A mesh instance placed in a scene.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SceneObject {
+    /// Object name.
+    pub name: String,
+    /// Geometry.
+    pub mesh: Arc<Mesh>,
+    /// Object-to-world transform.
+    pub world_from_object: Pose,
+    /// Diffuse albedo, linear RGB.
+    pub albedo: [f32; 3],
+}
+
+/// A light source.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub enum Light {
+    /// A point light at `position` with radiant intensity `intensity` (linear RGB).
+    Point {
+        /// Position in world coordinates.
+        position: [f64; 3],
+        /// Intensity per channel.
+        intensity: [f32; 3],
+    },
+    /// A directional light travelling along `direction`.
+    Directional {
+        /// Direction of travel (unit).
+        direction: [f64; 3],
+        /// Irradiance per channel.
+        irradiance: [f32; 3],
+    },
+}
+
+/// A renderable scene: objects, lights and viewing cameras.
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct Scene {
+    /// Objects.
+    pub objects: Vec<SceneObject>,
+    /// Lights.
+    pub lights: Vec<Light>,
+    /// Cameras with their world-to-camera poses.
+    pub cameras: Vec<(Camera, Pose)>,
+}
+
+/// One animated property: keyframe times and values (`values.len() == times.len() × width`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct AnimationChannel {
+    /// What is animated, e.g. `joint3.rotation`.
+    pub target: String,
+    /// Keyframe times, seconds, increasing.
+    pub times: Vec<f64>,
+    /// Numbers per keyframe (3 for translation, 4 for a quaternion).
+    pub width: usize,
+    /// Keyframe values, `width` per time.
+    pub values: Vec<f64>,
+}
+
+/// Animation channels with a shared duration.
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct Animation {
+    /// Duration, seconds.
+    pub duration: f64,
+    /// Channels.
+    pub channels: Vec<AnimationChannel>,
+}
+
+/// Named numbers, ordered by name.
+pub type Metrics = BTreeMap<String, f64>;
+
+/// A list of values of one element type.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ValueList {
+    /// Element type (known even for an empty list).
+    pub element: PortType,
+    /// Elements.
+    pub items: Vec<Value>,
+}
+
+/// A value on an edge.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Value {
+    /// See [`Image`].
+    Image(Arc<Image>),
+    /// See [`Keypoint`].
+    Keypoints(Arc<Vec<Keypoint>>),
+    /// See [`Descriptors`].
+    Descriptors(Arc<Descriptors>),
+    /// See [`Match`].
+    Matches(Arc<Vec<Match>>),
+    /// See [`Matrix`].
+    Matrix(Arc<Matrix>),
+    /// See [`Camera`].
+    Camera(Arc<Camera>),
+    /// See [`Pose`].
+    Pose(Pose),
+    /// 2-D points, pixels.
+    Points2D(Arc<Vec<[f64; 2]>>),
+    /// See [`PointCloud`].
+    PointCloud(Arc<PointCloud>),
+    /// See [`Tracks`].
+    Tracks(Arc<Tracks>),
+    /// See [`Reconstruction`].
+    Reconstruction(Arc<Reconstruction>),
+    /// See [`Mesh`].
+    Mesh(Arc<Mesh>),
+    /// See [`Scene`].
+    Scene(Arc<Scene>),
+    /// See [`Animation`].
+    Animation(Arc<Animation>),
+    /// A real number.
+    Scalar(f64),
+    /// An integer.
+    Integer(i64),
+    /// A boolean.
+    Bool(bool),
+    /// Text.
+    Text(Arc<str>),
+    /// See [`Metrics`].
+    Metrics(Arc<Metrics>),
+    /// See [`ValueList`].
+    List(Arc<ValueList>),
+}
+
+impl Value {
+    /// Wraps an image.
+    pub fn image(image: Image) -> Value {
+        Value::Image(Arc::new(image))
+    }
+
+    /// Wraps metrics.
+    pub fn metrics(metrics: Metrics) -> Value {
+        Value::Metrics(Arc::new(metrics))
+    }
+
+    /// Wraps a list of values of type `element`.
+    pub fn list(element: PortType, items: Vec<Value>) -> Value {
+        Value::List(Arc::new(ValueList { element, items }))
+    }
+
+    /// The port type of this value.
+    pub fn port_type(&self) -> PortType {
+        match self {
+            Value::Image(_) => PortType::Image,
+            Value::Keypoints(_) => PortType::Keypoints,
+            Value::Descriptors(_) => PortType::Descriptors,
+            Value::Matches(_) => PortType::Matches,
+            Value::Matrix(_) => PortType::Matrix,
+            Value::Camera(_) => PortType::Camera,
+            Value::Pose(_) => PortType::Pose,
+            Value::Points2D(_) => PortType::Points2D,
+            Value::PointCloud(_) => PortType::PointCloud,
+            Value::Tracks(_) => PortType::Tracks,
+            Value::Reconstruction(_) => PortType::Reconstruction,
+            Value::Mesh(_) => PortType::Mesh,
+            Value::Scene(_) => PortType::Scene,
+            Value::Animation(_) => PortType::Animation,
+            Value::Scalar(_) => PortType::Scalar,
+            Value::Integer(_) => PortType::Integer,
+            Value::Bool(_) => PortType::Bool,
+            Value::Text(_) => PortType::Text,
+            Value::Metrics(_) => PortType::Metrics,
+            Value::List(list) => list.element.clone().list_of(),
+        }
+    }
+
+    /// Approximate heap bytes held by this value (for peak-memory accounting). Shared payloads are
+    /// counted once per value, so callers count each produced value once.
+    pub fn byte_size(&self) -> usize {
+        const F32X3: usize = 12;
+        match self {
+            Value::Image(i) => i.byte_size(),
+            Value::Keypoints(k) => k.len() * std::mem::size_of::<Keypoint>(),
+            Value::Descriptors(d) => match d.as_ref() {
+                Descriptors::Float { data, .. } => data.len() * 4,
+                Descriptors::Binary { data, .. } => data.len(),
+            },
+            Value::Matches(m) => m.len() * std::mem::size_of::<Match>(),
+            Value::Matrix(m) => m.data.len() * 8,
+            Value::Camera(c) => c.params.len() * 8,
+            Value::Points2D(p) => p.len() * 16,
+            Value::PointCloud(p) => {
+                p.positions.len() * F32X3
+                    + p.colors.as_ref().map_or(0, |c| c.len() * 3)
+                    + p.normals.as_ref().map_or(0, |n| n.len() * F32X3)
+            }
+            Value::Tracks(t) => t.tracks.iter().map(|t| t.len() * 8 + 24).sum(),
+            Value::Reconstruction(r) => {
+                r.images
+                    .iter()
+                    .map(|i| i.points2d.len() * 32 + i.name.len())
+                    .sum::<usize>()
+                    + r.points
+                        .iter()
+                        .map(|p| 64 + p.track.len() * 8)
+                        .sum::<usize>()
+            }
+            Value::Mesh(m) => mesh_bytes(m),
+            Value::Scene(s) => s.objects.iter().map(|o| mesh_bytes(&o.mesh)).sum(),
+            Value::Animation(a) => a
+                .channels
+                .iter()
+                .map(|c| (c.times.len() + c.values.len()) * 8)
+                .sum(),
+            Value::Text(t) => t.len(),
+            Value::Metrics(m) => m.keys().map(|k| k.len() + 8).sum(),
+            Value::List(l) => l.items.iter().map(Value::byte_size).sum(),
+            Value::Pose(_) | Value::Scalar(_) | Value::Integer(_) | Value::Bool(_) => 0,
+        }
+    }
+}
+
+fn mesh_bytes(m: &Mesh) -> usize {
+    m.positions.len() * 12
+        + m.triangles.len() * 12
+        + m.normals.as_ref().map_or(0, |n| n.len() * 12)
+        + m.uvs.as_ref().map_or(0, |n| n.len() * 8)
+        + m.colors.as_ref().map_or(0, |n| n.len() * 12)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn image_checks_buffer_size() {
+        assert!(Image::from_u8(2, 3, Channels::Rgb, vec![0; 18]).is_ok());
+        let err = Image::from_u8(2, 3, Channels::Rgb, vec![0; 17]).unwrap_err();
+        assert!(matches!(
+            err,
+            ValueError::ImageSize {
+                expected: 18,
+                actual: 17,
+                ..
+            }
+        ));
+        assert!(Image::from_u8(0, 5, Channels::Gray, vec![]).is_ok());
+        assert!(Image::sample_count(usize::MAX, 2, Channels::Gray).is_err());
+    }
+
+    #[test]
+    fn list_type_is_known_when_empty() {
+        let v = Value::list(PortType::Image, vec![]);
+        assert_eq!(v.port_type(), PortType::Image.list_of());
+        assert_eq!(v.byte_size(), 0);
+    }
+
+    #[test]
+    fn byte_size_counts_samples() {
+        let img = Image::from_f32(4, 2, Channels::Rgba, vec![0.0; 32]).unwrap();
+        assert_eq!(Value::image(img).byte_size(), 128);
+    }
+
+    #[test]
+    fn matrix_checks_size() {
+        assert!(Matrix::new(2, 2, vec![1.0; 4]).is_ok());
+        assert!(Matrix::new(2, 3, vec![1.0; 4]).is_err());
+        let m = Matrix::new(2, 2, vec![1.0, 2.0, 3.0, 4.0]).unwrap();
+        assert_eq!(m.get(1, 0), Some(3.0));
+        assert_eq!(m.get(2, 0), None);
+    }
+}
