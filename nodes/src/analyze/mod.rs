@@ -1,0 +1,3 @@
+//! Measurements on values.
+
+pub mod stats;

@@ -1,0 +1,3 @@
+//! Sources that synthesise or capture images.
+
+pub mod pattern;

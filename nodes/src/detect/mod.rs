@@ -1,0 +1,3 @@
+//! Detectors: edges, corners, blobs.
+
+pub mod canny;
