@@ -4,15 +4,35 @@
 //! validation, the demand-driven parallel scheduler, the result cache, output writers and the
 //! snapshot helpers used by tests. It knows no operator: operators register through
 //! [`op::Registry`].
+//!
+//! Layers, bottom up: [`ron_syntax`] (spanned RON) → [`spec`] (the file as written) →
+//! [`resolve`] (validation into a [`graph::Graph`]) → [`exec`] (the scheduler, with [`cache`]) →
+//! [`emit`] / [`summary`] / [`testing`] (outputs for users and tests).
 
+pub mod cache;
+pub mod codec;
+pub mod diag;
+pub mod emit;
+pub mod exec;
+pub mod graph;
+pub mod image_io;
 pub mod op;
 pub mod params;
+pub mod resolve;
+pub mod ron_syntax;
+pub mod spec;
+pub mod summary;
+pub mod testing;
 pub mod types;
 pub mod value;
 
+pub use diag::{Diagnostic, Diagnostics};
+pub use exec::{RunOptions, RunReport, run};
+pub use graph::Graph;
 pub use op::{
     Inputs, Op, OpError, OpFactory, OpInfo, Operator, Outputs, PortSpec, Registry, RunContext,
 };
 pub use params::{NoParams, ParamKind, ParamMap, ParamSpec, ParamType, ParamValue, Params};
+pub use resolve::{Override, load_graph};
 pub use types::PortType;
 pub use value::{Channels, Depth, Image, PixelData, PixelFormat, Value};

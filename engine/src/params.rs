@@ -212,15 +212,15 @@ impl ParamSpec {
                 ));
             }
         }
-        if let Some(max) = self.max {
-            if x > max {
-                return Err(format!(
-                    "`{}` must be ≤ {}, got {}",
-                    self.name,
-                    fmt_bound(max),
-                    fmt_bound(x)
-                ));
-            }
+        if let Some(max) = self.max
+            && x > max
+        {
+            return Err(format!(
+                "`{}` must be ≤ {}, got {}",
+                self.name,
+                fmt_bound(max),
+                fmt_bound(x)
+            ));
         }
         Ok(())
     }
@@ -653,10 +653,12 @@ mod tests {
 
     #[test]
     fn map_round_trip() {
-        let mut p = TestParams::default();
-        p.sigma = 2.0;
-        p.mode = Mode::Accurate;
-        p.label = Some("x".into());
+        let p = TestParams {
+            sigma: 2.0,
+            mode: Mode::Accurate,
+            label: Some("x".into()),
+            ..TestParams::default()
+        };
         let back = TestParams::from_map(&p.to_map()).unwrap();
         assert_eq!(back, p);
     }

@@ -1,0 +1,778 @@
+//! The scheduler: demand-driven, parallel, cached.
+//!
+//! 1. **Demand.** Only nodes that the requested outputs (and, without a selection, side-effect
+//!    nodes such as file writers) depend on are considered.
+//! 2. **Keys.** Each node gets a content key: BLAKE3 of (op id, op version, canonical params,
+//!    operator fingerprint, input keys). Keys depend on the graph, not on data, so they are known
+//!    before anything runs.
+//! 3. **Sharing and cache.** Nodes with equal keys are computed once per run. With a disk cache, a
+//!    node whose key is stored is loaded instead of computed — and then its upstream nodes are not
+//!    needed at all.
+//! 4. **Parallel run.** Ready nodes are spawned on a rayon pool of `threads` workers; operators
+//!    parallelise inside on the same pool. A node's outputs are dropped as soon as its last
+//!    consumer finished (unless they are graph outputs).
+//! 5. **Failures.** A failing node (error or panic) fails only its downstream nodes; every other
+//!    branch completes and its outputs are returned.
+//!
+//! Outputs never depend on the thread count: scheduling order changes only timings, which are
+//! reported in [`RunReport`], never in values.
+
+use std::collections::HashMap;
+use std::panic::{AssertUnwindSafe, catch_unwind};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use rayon::prelude::*;
+
+use crate::cache::DiskCache;
+use crate::diag::suggest;
+use crate::graph::{Graph, Node};
+use crate::op::{Inputs, OpError, RunContext};
+use crate::value::Value;
+
+/// Bumped when the key derivation or cache format changes.
+const KEY_SCHEME: &[u8] = b"ocellus-key-v1";
+
+/// A node's content key.
+pub type Key = [u8; 32];
+
+/// Progress callback: (nodes finished, nodes to run).
+pub type ProgressFn = Arc<dyn Fn(usize, usize) + Send + Sync>;
+
+/// How to run a graph.
+#[derive(Clone, Default)]
+pub struct RunOptions {
+    /// Worker threads; 0 uses every core.
+    pub threads: usize,
+    /// Output names to produce; empty produces all outputs and runs side-effect nodes.
+    pub outputs: Vec<String>,
+    /// Persistent result cache folder.
+    pub cache_dir: Option<PathBuf>,
+    /// Called as nodes finish.
+    pub progress: Option<ProgressFn>,
+}
+
+/// Errors that stop a run before it starts.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// `--output NAME` names no graph output.
+    #[error("the graph has no output `{name}`{}", .suggestion.as_ref().map(|s| format!(" (did you mean `{s}`?)")).unwrap_or_default())]
+    UnknownOutput {
+        /// The name asked for.
+        name: String,
+        /// The nearest output name.
+        suggestion: Option<String>,
+    },
+    /// The thread pool could not be created.
+    #[error("cannot start {threads} worker threads: {message}")]
+    Threads {
+        /// Threads asked for.
+        threads: usize,
+        /// Why.
+        message: String,
+    },
+    /// The cache folder cannot be used.
+    #[error("cache folder {path}: {message}")]
+    Cache {
+        /// The folder.
+        path: PathBuf,
+        /// Why.
+        message: String,
+    },
+}
+
+/// What happened to a node.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NodeStatus {
+    /// Ran its operator.
+    Computed,
+    /// Loaded from the disk cache.
+    Cached,
+    /// Identical to another node of this run, whose result it shares.
+    Shared,
+    /// Its operator failed.
+    Failed,
+    /// Not run because an upstream node failed.
+    Skipped,
+    /// Not needed: no requested output depends on it, or a cached result made it unnecessary.
+    Idle,
+}
+
+/// Per-node record of a run.
+#[derive(Debug, Clone)]
+pub struct NodeReport {
+    /// Qualified node name.
+    pub name: String,
+    /// Operator id.
+    pub op: String,
+    /// What happened.
+    pub status: NodeStatus,
+    /// Time spent in the operator (zero unless computed).
+    pub elapsed: Duration,
+}
+
+/// A node that failed, with where it was declared.
+#[derive(Debug, Clone)]
+pub struct NodeFailure {
+    /// Qualified node name.
+    pub node: String,
+    /// Operator id.
+    pub op: String,
+    /// `file:line:col` of the node's declaration.
+    pub location: Option<String>,
+    /// The operator's error.
+    pub message: String,
+}
+
+impl std::fmt::Display for NodeFailure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match &self.location {
+            Some(loc) => write!(
+                f,
+                "{loc}: node `{}` ({}) failed: {}",
+                self.node, self.op, self.message
+            ),
+            None => write!(
+                f,
+                "node `{}` ({}) failed: {}",
+                self.node, self.op, self.message
+            ),
+        }
+    }
+}
+
+/// The result of a run: outputs that could be computed, failures, and statistics.
+#[derive(Debug, Clone, Default)]
+pub struct RunReport {
+    /// Requested outputs that were produced, in the graph's declaration order.
+    pub outputs: Vec<(String, Value)>,
+    /// Failed nodes, in graph order.
+    pub failures: Vec<NodeFailure>,
+    /// Every node of the graph, in graph order.
+    pub nodes: Vec<NodeReport>,
+    /// Problems that did not fail the run (e.g. a cache write that failed).
+    pub warnings: Vec<String>,
+    /// Largest number of bytes held by live node outputs at any time.
+    pub peak_bytes: usize,
+    /// Wall time of the whole run.
+    pub elapsed: Duration,
+}
+
+impl RunReport {
+    /// Number of nodes with the given status.
+    pub fn count(&self, status: NodeStatus) -> usize {
+        self.nodes.iter().filter(|n| n.status == status).count()
+    }
+
+    /// The output with this name.
+    pub fn output(&self, name: &str) -> Option<&Value> {
+        self.outputs.iter().find(|(n, _)| n == name).map(|(_, v)| v)
+    }
+
+    /// One line: `4 computed, 1 cached, 0 shared, 0 failed, 0 skipped`.
+    pub fn summary_line(&self) -> String {
+        format!(
+            "{} computed, {} cached, {} shared, {} failed, {} skipped",
+            self.count(NodeStatus::Computed),
+            self.count(NodeStatus::Cached),
+            self.count(NodeStatus::Shared),
+            self.count(NodeStatus::Failed),
+            self.count(NodeStatus::Skipped)
+        )
+    }
+}
+
+/// Plan for one run, before anything executes.
+struct Plan {
+    /// For each node: the node whose result it uses (itself, or an identical earlier node).
+    canonical: Vec<usize>,
+    /// Nodes that run their operator.
+    run: Vec<bool>,
+    /// Results loaded from the cache.
+    loaded: HashMap<usize, Arc<[Value]>>,
+    /// Content keys (for needed nodes).
+    keys: Vec<Option<Key>>,
+    /// Failures found while planning (fingerprints).
+    failed: HashMap<usize, String>,
+    /// Requested outputs: (name, canonical node, port).
+    requested: Vec<(String, usize, usize)>,
+    /// Nodes whose status is `Shared`.
+    shared: Vec<bool>,
+}
+
+/// Runs a graph.
+pub fn run(graph: &Graph, options: &RunOptions) -> Result<RunReport, RunError> {
+    let threads = if options.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        options.threads
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(|i| format!("ocellus-{i}"))
+        .build()
+        .map_err(|e| RunError::Threads {
+            threads,
+            message: e.to_string(),
+        })?;
+    let cache = match &options.cache_dir {
+        Some(dir) => Some(DiskCache::open(dir).map_err(|e| RunError::Cache {
+            path: dir.clone(),
+            message: e.to_string(),
+        })?),
+        None => None,
+    };
+    let start = Instant::now();
+    let plan = plan(graph, &options.outputs, cache.as_ref())?;
+    let mut report = pool.install(|| {
+        execute(
+            graph,
+            &plan,
+            cache.as_ref(),
+            threads,
+            options.progress.as_ref(),
+        )
+    });
+    report.elapsed = start.elapsed();
+    Ok(report)
+}
+
+fn plan(graph: &Graph, selected: &[String], cache: Option<&DiskCache>) -> Result<Plan, RunError> {
+    let n = graph.nodes.len();
+    // Requested outputs and roots.
+    let mut requested = Vec::new();
+    let mut roots = Vec::new();
+    if selected.is_empty() {
+        for out in &graph.outputs {
+            requested.push((out.name.clone(), out.from.node, out.from.port));
+            roots.push(out.from.node);
+        }
+        roots.extend((0..n).filter(|&i| graph.nodes[i].info.side_effects));
+    } else {
+        for name in selected {
+            let Some(out) = graph.outputs.iter().find(|o| &o.name == name) else {
+                return Err(RunError::UnknownOutput {
+                    name: name.clone(),
+                    suggestion: suggest(name, graph.outputs.iter().map(|o| o.name.as_str()))
+                        .map(str::to_string),
+                });
+            };
+            if !requested.iter().any(|(r, _, _)| r == name) {
+                requested.push((out.name.clone(), out.from.node, out.from.port));
+                roots.push(out.from.node);
+            }
+        }
+        requested.sort_by_key(|(name, _, _)| graph.outputs.iter().position(|o| &o.name == name));
+    }
+
+    // Everything the roots depend on.
+    let mut needed = vec![false; n];
+    let mut stack = roots.clone();
+    while let Some(i) = stack.pop() {
+        if std::mem::replace(&mut needed[i], true) {
+            continue;
+        }
+        stack.extend(graph.nodes[i].inputs.iter().flatten().map(|e| e.from.node));
+    }
+
+    // Keys, in topological order; identical non-side-effect nodes share one result.
+    let mut keys: Vec<Option<Key>> = vec![None; n];
+    let mut canonical: Vec<usize> = (0..n).collect();
+    let mut shared = vec![false; n];
+    let mut failed = HashMap::new();
+    let mut first_with_key: HashMap<Key, usize> = HashMap::new();
+    for i in (0..n).filter(|&i| needed[i]) {
+        let node = &graph.nodes[i];
+        let fingerprint = match catch_unwind(AssertUnwindSafe(|| node.op.fingerprint())) {
+            Ok(Ok(f)) => f,
+            Ok(Err(e)) => {
+                failed.insert(i, e.to_string());
+                continue;
+            }
+            Err(payload) => {
+                failed.insert(i, panic_message(payload.as_ref()));
+                continue;
+            }
+        };
+        let Some(key) = node_key(node, &fingerprint, &keys) else {
+            continue; // an input's key is missing: its source failed to plan
+        };
+        keys[i] = Some(key);
+        if !node.info.side_effects {
+            match first_with_key.get(&key) {
+                Some(&j) => {
+                    canonical[i] = j;
+                    shared[i] = true;
+                }
+                None => {
+                    first_with_key.insert(key, i);
+                }
+            }
+        }
+    }
+
+    // Walk demand again, stopping at cached results.
+    let mut run = vec![false; n];
+    let mut loaded: HashMap<usize, Arc<[Value]>> = HashMap::new();
+    let mut visited = vec![false; n];
+    let mut stack: Vec<usize> = roots.iter().map(|&r| canonical[r]).collect();
+    while let Some(i) = stack.pop() {
+        let c = canonical[i];
+        if std::mem::replace(&mut visited[c], true) {
+            continue;
+        }
+        let node = &graph.nodes[c];
+        if let (Some(cache), Some(key), false) = (cache, keys[c], node.info.side_effects)
+            && let Some(values) = cache.load(&key, &node.output_types)
+        {
+            loaded.insert(c, values.into());
+            continue;
+        }
+        run[c] = true;
+        stack.extend(node.inputs.iter().flatten().map(|e| canonical[e.from.node]));
+    }
+    for (_, node, _) in &mut requested {
+        *node = canonical[*node];
+    }
+    // A shared node counts as shared only if its canonical twin is actually used.
+    for i in 0..n {
+        if shared[i] && !(needed[i] && (run[canonical[i]] || loaded.contains_key(&canonical[i]))) {
+            shared[i] = false;
+        }
+    }
+    Ok(Plan {
+        canonical,
+        run,
+        loaded,
+        keys,
+        failed,
+        requested,
+        shared,
+    })
+}
+
+fn node_key(node: &Node, fingerprint: &[u8], keys: &[Option<Key>]) -> Option<Key> {
+    let mut h = blake3::Hasher::new();
+    let field = |h: &mut blake3::Hasher, bytes: &[u8]| {
+        h.update(&(bytes.len() as u64).to_le_bytes());
+        h.update(bytes);
+    };
+    field(&mut h, KEY_SCHEME);
+    field(&mut h, node.info.id.as_bytes());
+    field(&mut h, &node.info.version.to_le_bytes());
+    for (name, value) in &node.params {
+        field(&mut h, name.as_bytes());
+        field(&mut h, value.to_string().as_bytes());
+    }
+    field(&mut h, fingerprint);
+    for input in &node.inputs {
+        match input {
+            Some(edge) => {
+                let key = keys[edge.from.node]?;
+                h.update(&[1, u8::from(edge.mapped)]);
+                h.update(&key);
+                h.update(&(edge.from.port as u64).to_le_bytes());
+            }
+            None => {
+                h.update(&[0]);
+            }
+        }
+    }
+    Some(*h.finalize().as_bytes())
+}
+
+/// Mutable state shared by the tasks of one run.
+struct State<'a> {
+    graph: &'a Graph,
+    plan: &'a Plan,
+    cache: Option<&'a DiskCache>,
+    threads: usize,
+    /// Outputs of each canonical node while alive.
+    results: Vec<Mutex<Option<Arc<[Value]>>>>,
+    /// Dependencies (distinct canonical sources that run) not yet finished.
+    pending: Vec<AtomicUsize>,
+    /// Running consumers not yet finished, per canonical source.
+    consumers_left: Vec<AtomicUsize>,
+    /// Results kept to the end (requested outputs).
+    pinned: Vec<bool>,
+    /// Running dependents of each node.
+    dependents: Vec<Vec<usize>>,
+    /// Distinct canonical sources of each node.
+    sources: Vec<Vec<usize>>,
+    status: Vec<Mutex<NodeStatus>>,
+    elapsed: Vec<Mutex<Duration>>,
+    failures: Mutex<Vec<(usize, String)>>,
+    warnings: Mutex<Vec<String>>,
+    live_bytes: AtomicUsize,
+    peak_bytes: AtomicUsize,
+    done: AtomicUsize,
+    total: usize,
+    progress: Option<&'a ProgressFn>,
+}
+
+fn execute(
+    graph: &Graph,
+    plan: &Plan,
+    cache: Option<&DiskCache>,
+    threads: usize,
+    progress: Option<&ProgressFn>,
+) -> RunReport {
+    let n = graph.nodes.len();
+    let canonical = &plan.canonical;
+    let mut sources: Vec<Vec<usize>> = vec![Vec::new(); n];
+    let mut dependents: Vec<Vec<usize>> = vec![Vec::new(); n];
+    let mut consumers = vec![0usize; n];
+    for i in (0..n).filter(|&i| plan.run[i]) {
+        let mut s: Vec<usize> = graph.nodes[i]
+            .inputs
+            .iter()
+            .flatten()
+            .map(|e| canonical[e.from.node])
+            .collect();
+        s.sort_unstable();
+        s.dedup();
+        for &j in &s {
+            consumers[j] += 1;
+            if plan.run[j] {
+                dependents[j].push(i);
+            }
+        }
+        sources[i] = s;
+    }
+    let mut pinned = vec![false; n];
+    for (_, node, _) in &plan.requested {
+        pinned[*node] = true;
+    }
+    let state = State {
+        graph,
+        plan,
+        cache,
+        threads,
+        results: (0..n)
+            .map(|i| Mutex::new(plan.loaded.get(&i).cloned()))
+            .collect(),
+        pending: (0..n)
+            .map(|i| AtomicUsize::new(sources[i].iter().filter(|&&j| plan.run[j]).count()))
+            .collect(),
+        consumers_left: consumers.iter().map(|&c| AtomicUsize::new(c)).collect(),
+        pinned,
+        dependents,
+        sources,
+        status: (0..n)
+            .map(|i| {
+                Mutex::new(if plan.loaded.contains_key(&i) {
+                    NodeStatus::Cached
+                } else if plan.shared[i] {
+                    NodeStatus::Shared
+                } else {
+                    NodeStatus::Idle
+                })
+            })
+            .collect(),
+        elapsed: (0..n).map(|_| Mutex::new(Duration::ZERO)).collect(),
+        failures: Mutex::new(Vec::new()),
+        warnings: Mutex::new(Vec::new()),
+        live_bytes: AtomicUsize::new(plan.loaded.values().map(|v| bytes_of(v)).sum()),
+        peak_bytes: AtomicUsize::new(0),
+        done: AtomicUsize::new(0),
+        total: plan.run.iter().filter(|&&r| r).count(),
+        progress,
+    };
+    state
+        .peak_bytes
+        .store(state.live_bytes.load(Ordering::Relaxed), Ordering::Relaxed);
+
+    rayon::scope(|scope| {
+        for i in 0..n {
+            if plan.run[i] && state.pending[i].load(Ordering::Relaxed) == 0 {
+                let state = &state;
+                scope.spawn(move |scope| run_task(scope, state, i));
+            }
+        }
+    });
+
+    let State {
+        results,
+        status,
+        elapsed,
+        failures,
+        warnings,
+        peak_bytes,
+        ..
+    } = state;
+    let status: Vec<NodeStatus> = status
+        .into_iter()
+        .map(|s| s.into_inner().unwrap_or(NodeStatus::Failed))
+        .collect();
+    let results: Vec<Option<Arc<[Value]>>> = results
+        .into_iter()
+        .map(|r| r.into_inner().unwrap_or(None))
+        .collect();
+    let mut failures = failures.into_inner().unwrap_or_default();
+    failures.sort_by_key(|(i, _)| *i);
+    let mut outputs = Vec::new();
+    for (name, node, port) in &plan.requested {
+        if let Some(Some(values)) = results.get(*node)
+            && let Some(v) = values.get(*port)
+        {
+            outputs.push((name.clone(), v.clone()));
+        }
+    }
+    RunReport {
+        outputs,
+        failures: failures
+            .into_iter()
+            .map(|(i, message)| {
+                let node = &graph.nodes[i];
+                NodeFailure {
+                    node: node.name.clone(),
+                    op: node.info.id.clone(),
+                    location: node.location.as_ref().map(|l| l.display()),
+                    message,
+                }
+            })
+            .collect(),
+        nodes: graph
+            .nodes
+            .iter()
+            .zip(status)
+            .zip(elapsed)
+            .map(|((node, status), elapsed)| NodeReport {
+                name: node.name.clone(),
+                op: node.info.id.clone(),
+                status,
+                elapsed: elapsed.into_inner().unwrap_or_default(),
+            })
+            .collect(),
+        warnings: warnings.into_inner().unwrap_or_default(),
+        peak_bytes: peak_bytes.into_inner(),
+        elapsed: Duration::ZERO,
+    }
+}
+
+fn bytes_of(values: &[Value]) -> usize {
+    values.iter().map(Value::byte_size).sum()
+}
+
+fn set_status(state: &State<'_>, i: usize, status: NodeStatus) {
+    if let Ok(mut s) = state.status[i].lock() {
+        *s = status;
+    }
+}
+
+fn run_task<'s>(scope: &rayon::Scope<'s>, state: &'s State<'s>, i: usize) {
+    let node = &state.graph.nodes[i];
+    // Gather inputs; an upstream failure skips this node.
+    let mut upstream_failed = state.plan.failed.contains_key(&i);
+    let mut inputs: Vec<Option<Value>> = Vec::with_capacity(node.inputs.len());
+    for edge in &node.inputs {
+        let value = edge.as_ref().and_then(|e| {
+            let src = state.plan.canonical[e.from.node];
+            let guard = state.results[src].lock().ok()?;
+            guard
+                .as_ref()
+                .and_then(|vals| vals.get(e.from.port).cloned())
+        });
+        if edge.is_some() && value.is_none() {
+            upstream_failed = true;
+        }
+        inputs.push(value);
+    }
+
+    if let Some(message) = state.plan.failed.get(&i) {
+        record_failure(state, i, message.clone());
+    } else if upstream_failed {
+        set_status(state, i, NodeStatus::Skipped);
+    } else {
+        let ctx = RunContext {
+            node: node.name.clone(),
+            threads: state.threads,
+            element: None,
+        };
+        let started = Instant::now();
+        let outcome = catch_unwind(AssertUnwindSafe(|| run_node(node, &ctx, &inputs)))
+            .unwrap_or_else(|payload| {
+                Err(OpError::failed(format!(
+                    "operator panicked: {}",
+                    panic_message(payload.as_ref())
+                )))
+            });
+        if let Ok(mut e) = state.elapsed[i].lock() {
+            *e = started.elapsed();
+        }
+        match outcome {
+            Ok(values) => {
+                let values: Arc<[Value]> = values.into();
+                if let (Some(cache), Some(key), false) =
+                    (state.cache, state.plan.keys[i], node.info.side_effects)
+                    && let Err(e) = cache.store(&key, &values)
+                    && let Ok(mut w) = state.warnings.lock()
+                {
+                    w.push(format!(
+                        "cache: could not store the result of `{}`: {e}",
+                        node.name
+                    ));
+                }
+                let bytes = bytes_of(&values);
+                let live = state.live_bytes.fetch_add(bytes, Ordering::Relaxed) + bytes;
+                state.peak_bytes.fetch_max(live, Ordering::Relaxed);
+                if let Ok(mut slot) = state.results[i].lock() {
+                    *slot = Some(values);
+                }
+                set_status(state, i, NodeStatus::Computed);
+                // Nobody will read it: free at once.
+                if state.consumers_left[i].load(Ordering::Acquire) == 0 && !state.pinned[i] {
+                    release(state, i);
+                }
+            }
+            Err(e) => record_failure(state, i, e.to_string()),
+        }
+    }
+    drop(inputs);
+
+    // Release inputs whose last consumer this was.
+    for &src in &state.sources[i] {
+        if state.consumers_left[src].fetch_sub(1, Ordering::AcqRel) == 1 && !state.pinned[src] {
+            release(state, src);
+        }
+    }
+    let done = state.done.fetch_add(1, Ordering::Relaxed) + 1;
+    if let Some(progress) = state.progress {
+        progress(done, state.total);
+    }
+    for &d in &state.dependents[i] {
+        if state.pending[d].fetch_sub(1, Ordering::AcqRel) == 1 {
+            scope.spawn(move |scope| run_task(scope, state, d));
+        }
+    }
+}
+
+fn release(state: &State<'_>, i: usize) {
+    let taken = state.results[i]
+        .lock()
+        .ok()
+        .and_then(|mut slot| slot.take());
+    if let Some(values) = taken {
+        state
+            .live_bytes
+            .fetch_sub(bytes_of(&values), Ordering::Relaxed);
+    }
+}
+
+fn record_failure(state: &State<'_>, i: usize, message: String) {
+    set_status(state, i, NodeStatus::Failed);
+    if let Ok(mut f) = state.failures.lock() {
+        f.push((i, message));
+    }
+}
+
+fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    if let Some(s) = payload.downcast_ref::<&str>() {
+        (*s).to_string()
+    } else if let Some(s) = payload.downcast_ref::<String>() {
+        s.clone()
+    } else {
+        "unknown panic".to_string()
+    }
+}
+
+/// Runs one node's operator: once, or once per list element for a mapped node.
+pub fn run_node(
+    node: &Node,
+    ctx: &RunContext,
+    inputs: &[Option<Value>],
+) -> Result<Vec<Value>, OpError> {
+    if !node.is_mapped() {
+        let outputs = node.op.run(ctx, &Inputs::new(&node.info.inputs, inputs))?;
+        return collect_outputs(node, outputs, false);
+    }
+    // Mapped: every mapped input must be a list of the same length.
+    let mut len: Option<(usize, &str)> = None;
+    for (edge, (value, spec)) in node.inputs.iter().zip(inputs.iter().zip(&node.info.inputs)) {
+        if !edge.as_ref().is_some_and(|e| e.mapped) {
+            continue;
+        }
+        let Some(Value::List(list)) = value else {
+            return Err(OpError::input(&spec.name, "expected a list to map over"));
+        };
+        match len {
+            None => len = Some((list.items.len(), &spec.name)),
+            Some((n, first)) if n != list.items.len() => {
+                return Err(OpError::input(
+                    &spec.name,
+                    format!(
+                        "mapped list inputs differ in length: `{first}` has {n} elements, `{}` has {}",
+                        spec.name,
+                        list.items.len()
+                    ),
+                ));
+            }
+            Some(_) => {}
+        }
+    }
+    let n = len.map_or(0, |(n, _)| n);
+    let per_element: Vec<Result<Vec<Value>, OpError>> = (0..n)
+        .into_par_iter()
+        .map(|k| {
+            let element_inputs: Vec<Option<Value>> = node
+                .inputs
+                .iter()
+                .zip(inputs)
+                .map(|(edge, value)| match (edge, value) {
+                    (Some(e), Some(Value::List(list))) if e.mapped => list.items.get(k).cloned(),
+                    (_, v) => v.clone(),
+                })
+                .collect();
+            let element_ctx = RunContext {
+                element: Some(k),
+                ..ctx.clone()
+            };
+            let outputs = node.op.run(
+                &element_ctx,
+                &Inputs::new(&node.info.inputs, &element_inputs),
+            )?;
+            collect_outputs(node, outputs, true)
+        })
+        .collect();
+    let mut columns: Vec<Vec<Value>> = vec![Vec::with_capacity(n); node.info.outputs.len()];
+    for (k, result) in per_element.into_iter().enumerate() {
+        let values = result.map_err(|e| OpError::failed(format!("list element {k}: {e}")))?;
+        for (column, value) in columns.iter_mut().zip(values) {
+            column.push(value);
+        }
+    }
+    Ok(columns
+        .into_iter()
+        .zip(&node.info.outputs)
+        .map(|(items, spec)| Value::list(spec.ty.clone(), items))
+        .collect())
+}
+
+/// Orders an operator's outputs by its declared ports, checking presence and types.
+fn collect_outputs(
+    node: &Node,
+    mut outputs: crate::op::Outputs,
+    element: bool,
+) -> Result<Vec<Value>, OpError> {
+    let mut values = Vec::with_capacity(node.info.outputs.len());
+    for (spec, declared) in node.info.outputs.iter().zip(&node.output_types) {
+        let Some(value) = outputs.take(&spec.name) else {
+            return Err(OpError::failed(format!(
+                "operator `{}` did not produce its output `{}`",
+                node.info.id, spec.name
+            )));
+        };
+        let expected = if element { &spec.ty } else { declared };
+        let got = value.port_type();
+        if &got != expected {
+            return Err(OpError::failed(format!(
+                "operator `{}` produced {got} on output `{}`, declared {expected}",
+                node.info.id, spec.name
+            )));
+        }
+        values.push(value);
+    }
+    Ok(values)
+}

@@ -1,0 +1,46 @@
+//! Snapshot-testing helpers: run a graph file and get a stable, human-readable RON summary of its
+//! outputs (see [`crate::summary`]), for `insta::assert_snapshot!`.
+//!
+//! ```no_run
+//! # fn registry() -> ocellus_engine::Registry { ocellus_engine::Registry::new() }
+//! let summary = ocellus_engine::testing::snapshot_graph(&registry(), "graphs/edges.ron").unwrap();
+//! // insta::assert_snapshot!(summary);
+//! ```
+
+use std::path::Path;
+
+use crate::exec::{RunOptions, RunReport, run};
+use crate::op::Registry;
+use crate::resolve::{Override, load_graph};
+use crate::summary::summarize_outputs;
+
+/// Loads and runs a graph file with `threads` workers (0 = all cores) and `--set`-style
+/// overrides. Load errors, run errors and node failures are returned as text.
+pub fn run_graph(
+    registry: &Registry,
+    path: impl AsRef<Path>,
+    threads: usize,
+    overrides: &[&str],
+) -> Result<RunReport, String> {
+    let overrides = overrides
+        .iter()
+        .map(|o| Override::parse(o).map_err(|d| d.to_string()))
+        .collect::<Result<Vec<_>, _>>()?;
+    let graph = load_graph(registry, path.as_ref(), &overrides).map_err(|d| d.to_string())?;
+    let options = RunOptions {
+        threads,
+        ..RunOptions::default()
+    };
+    let report = run(&graph, &options).map_err(|e| e.to_string())?;
+    if !report.failures.is_empty() {
+        let lines: Vec<String> = report.failures.iter().map(ToString::to_string).collect();
+        return Err(lines.join("\n"));
+    }
+    Ok(report)
+}
+
+/// Runs a graph file and returns the summary of all its outputs.
+pub fn snapshot_graph(registry: &Registry, path: impl AsRef<Path>) -> Result<String, String> {
+    let report = run_graph(registry, path, 0, &[])?;
+    Ok(summarize_outputs(&report.outputs))
+}
