@@ -1,1 +1,45 @@
-fn main() {}
+//! `ocellus`: run, check and inspect Ocellus graphs.
+
+mod cli;
+mod ops;
+mod profile;
+mod report;
+
+use std::process::ExitCode;
+
+use clap::Parser;
+
+fn main() -> ExitCode {
+    // Operator panics are caught by the scheduler and reported as node errors; the default hook
+    // would print a second, raw message (and a backtrace hint) for each.
+    std::panic::set_hook(Box::new(|_| {}));
+    let args = cli::Cli::parse();
+    init_tracing(args.verbose);
+    match std::panic::catch_unwind(|| cli::dispatch(args)) {
+        Ok(code) => code,
+        Err(payload) => {
+            let message = payload
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "unknown panic".into());
+            eprintln!("error: internal error: {message}\nplease report this as a bug");
+            ExitCode::from(70)
+        }
+    }
+}
+
+fn init_tracing(verbose: u8) {
+    let level = match verbose {
+        0 => "warn",
+        1 => "info",
+        2 => "debug",
+        _ => "trace",
+    };
+    let filter = tracing_subscriber::EnvFilter::try_from_env("OCELLUS_LOG")
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
+}

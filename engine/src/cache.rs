@@ -46,3 +46,8 @@ impl DiskCache {
         write_atomic(&self.path(key), &encode_values(values))
     }
 }
+
+/// BLAKE3 of some bytes (used by operators whose results depend on a file's contents).
+pub fn content_hash(bytes: &[u8]) -> [u8; 32] {
+    *blake3::hash(bytes).as_bytes()
+}

@@ -1,0 +1,343 @@
+//! Command-line interface: argument parsing and the subcommands. Exit codes: 0 success, 1 a node
+//! failed or an output could not be written, 2 invalid graph or usage.
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
+
+use clap::{Parser, Subcommand};
+use ocellus_engine::{Diagnostics, Graph, Override, Registry, RunOptions, RunReport};
+
+use crate::profile::Profile;
+use crate::report::{print_diagnostics, render_bytes};
+
+/// Exit code for an invalid graph or bad usage.
+pub const EXIT_INVALID: u8 = 2;
+/// Exit code for a run in which a node failed or an output could not be written.
+pub const EXIT_FAILED: u8 = 1;
+
+/// Ocellus: a dataflow engine for visual computing.
+#[derive(Debug, Parser)]
+#[command(name = "ocellus", version, about, max_term_width = 100)]
+pub struct Cli {
+    /// More log output (-v info, -vv debug); `OCELLUS_LOG` overrides.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    pub verbose: u8,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Run a graph.
+    Run(RunArgs),
+    /// Check a graph and report every problem; exit 0 if valid, 2 if not.
+    Check {
+        /// Graph file.
+        graph: PathBuf,
+        /// Override a parameter, `NODE.PARAM=VALUE` (checked too).
+        #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
+        set: Vec<String>,
+    },
+    /// List operators, or show one in full.
+    Ops {
+        /// Show only this operator, in full.
+        op: Option<String>,
+        /// Machine-readable JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Print a graph as Graphviz DOT.
+    Dot {
+        /// Graph file.
+        graph: PathBuf,
+    },
+    /// Run a graph and print the snapshot summary of its outputs.
+    Snapshot {
+        /// Graph file.
+        graph: PathBuf,
+        /// Worker threads (0 = all cores).
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+    },
+}
+
+/// `ocellus run`.
+#[derive(Debug, clap::Args)]
+pub struct RunArgs {
+    /// Graph file.
+    pub graph: PathBuf,
+    /// Override a parameter: `NODE.PARAM=VALUE`, VALUE in RON (`1.5`, `[0, 0, 3]`, `"text"`; a
+    /// bare word is a string).
+    #[arg(long = "set", value_name = "NODE.PARAM=VALUE")]
+    pub set: Vec<String>,
+    /// Produce only these outputs (repeatable); default all.
+    #[arg(long = "output", value_name = "NAME")]
+    pub output: Vec<String>,
+    /// Write the outputs into this folder.
+    #[arg(long, value_name = "DIR")]
+    pub emit: Option<PathBuf>,
+    /// Worker threads for the scheduler and the operators (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Run the graph N times without the cache (for timing).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
+    pub repeat: u32,
+    /// Write per-node timings as JSON.
+    #[arg(long, value_name = "FILE.json")]
+    pub profile: Option<PathBuf>,
+    /// Persist node results here and reuse them across runs.
+    #[arg(long, value_name = "DIR")]
+    pub cache: Option<PathBuf>,
+}
+
+/// Runs a parsed command line.
+pub fn dispatch(cli: Cli) -> ExitCode {
+    let registry = match builtin_registry() {
+        Ok(r) => r,
+        Err(code) => return code,
+    };
+    match cli.command {
+        Command::Run(args) => run(&registry, &args),
+        Command::Check { graph, set } => check(&registry, &graph, &set),
+        Command::Ops { op, json } => crate::ops::ops(&registry, op.as_deref(), json),
+        Command::Dot { graph } => match load(&registry, &graph, &[]) {
+            Ok(g) => {
+                print!("{}", g.to_dot());
+                ExitCode::SUCCESS
+            }
+            Err(code) => code,
+        },
+        Command::Snapshot { graph, threads } => snapshot(&registry, &graph, threads),
+    }
+}
+
+fn builtin_registry() -> Result<Registry, ExitCode> {
+    ocellus_nodes::builtin_registry().map_err(|e| {
+        eprintln!("error: {e}");
+        ExitCode::from(EXIT_FAILED)
+    })
+}
+
+/// Parses overrides and loads a graph, printing diagnostics on failure.
+fn load(registry: &Registry, path: &Path, set: &[String]) -> Result<Graph, ExitCode> {
+    let mut diags = Diagnostics::default();
+    let mut overrides = Vec::new();
+    for arg in set {
+        match Override::parse(arg) {
+            Ok(o) => overrides.push(o),
+            Err(d) => diags.push(*d),
+        }
+    }
+    let result = ocellus_engine::load_graph(registry, path, &overrides);
+    match result {
+        Ok(graph) if diags.is_empty() => Ok(graph),
+        Ok(_) => {
+            print_diagnostics(&diags, path);
+            Err(ExitCode::from(EXIT_INVALID))
+        }
+        Err(more) => {
+            diags.0.extend(more.0);
+            print_diagnostics(&diags, path);
+            Err(ExitCode::from(EXIT_INVALID))
+        }
+    }
+}
+
+fn check(registry: &Registry, path: &Path, set: &[String]) -> ExitCode {
+    match load(registry, path, set) {
+        Ok(graph) => {
+            println!(
+                "{}: ok — graph `{}`, {} nodes, {} outputs",
+                path.display(),
+                graph.name,
+                graph.nodes.len(),
+                graph.outputs.len()
+            );
+            ExitCode::SUCCESS
+        }
+        Err(code) => code,
+    }
+}
+
+fn snapshot(registry: &Registry, path: &Path, threads: usize) -> ExitCode {
+    let graph = match load(registry, path, &[]) {
+        Ok(g) => g,
+        Err(code) => return code,
+    };
+    let options = RunOptions {
+        threads,
+        ..RunOptions::default()
+    };
+    match ocellus_engine::run(&graph, &options) {
+        Ok(report) => {
+            print!("{}", ocellus_engine::summary::summarize_outputs(&report.outputs));
+            report_failures(&report)
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(EXIT_INVALID)
+        }
+    }
+}
+
+fn report_failures(report: &RunReport) -> ExitCode {
+    for w in &report.warnings {
+        eprintln!("warning: {w}");
+    }
+    for f in &report.failures {
+        eprintln!("error: {f}");
+    }
+    if report.failures.is_empty() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(EXIT_FAILED)
+    }
+}
+
+fn run(registry: &Registry, args: &RunArgs) -> ExitCode {
+    let graph = match load(registry, &args.graph, &args.set) {
+        Ok(g) => g,
+        Err(code) => return code,
+    };
+    let threads = if args.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        args.threads
+    };
+    let mut reports = Vec::with_capacity(args.repeat as usize);
+    for _ in 0..args.repeat {
+        let progress = Progress::start();
+        let options = RunOptions {
+            threads,
+            outputs: args.output.clone(),
+            // `--repeat` measures computation: results are never reused between repeats.
+            cache_dir: if args.repeat > 1 { None } else { args.cache.clone() },
+            progress: Some(progress.callback()),
+        };
+        let result = ocellus_engine::run(&graph, &options);
+        progress.finish();
+        match result {
+            Ok(report) => reports.push(report),
+            Err(e) => {
+                eprintln!("error: {e}");
+                return ExitCode::from(EXIT_INVALID);
+            }
+        }
+    }
+    let Some(last) = reports.last() else {
+        return ExitCode::from(EXIT_INVALID);
+    };
+    let profile = Profile::from_reports(&reports);
+    let mut code = report_failures(last);
+
+    if let Some(dir) = &args.emit {
+        if let Err(message) = emit_all(dir, last) {
+            eprintln!("error: {message}");
+            code = ExitCode::from(EXIT_FAILED);
+        }
+    } else {
+        print!("{}", ocellus_engine::summary::summarize_outputs(&last.outputs));
+    }
+    if let Some(path) = &args.profile {
+        if let Err(e) = profile.write(path) {
+            eprintln!("error: cannot write profile {}: {e}", path.display());
+            code = ExitCode::from(EXIT_FAILED);
+        }
+    }
+    let rss = crate::report::peak_rss_bytes()
+        .map(|b| format!(", process peak {}", render_bytes(b)))
+        .unwrap_or_default();
+    let timing = if args.repeat > 1 {
+        format!("median {:.2} ms over {} runs", profile.total_median_ms, args.repeat)
+    } else {
+        format!("{:.2} ms", last.elapsed.as_secs_f64() * 1e3)
+    };
+    eprintln!(
+        "ran `{}` in {timing} on {threads} thread{}: {} nodes — {}; peak outputs {}{rss}",
+        graph.name,
+        if threads == 1 { "" } else { "s" },
+        graph.nodes.len(),
+        last.summary_line(),
+        render_bytes(last.peak_bytes as u64),
+    );
+    code
+}
+
+fn emit_all(dir: &Path, report: &RunReport) -> Result<(), String> {
+    std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+    let mut failed = Vec::new();
+    for (name, value) in &report.outputs {
+        if let Err(e) = ocellus_engine::emit::emit_value(dir, name, value) {
+            failed.push(format!("output `{name}`: {e}"));
+        }
+    }
+    if failed.is_empty() {
+        Ok(())
+    } else {
+        Err(failed.join("\n"))
+    }
+}
+
+/// A progress bar on a terminal, shown once a run has taken longer than a second.
+struct Progress {
+    done: Arc<AtomicUsize>,
+    total: Arc<AtomicUsize>,
+    finished: Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Progress {
+    fn start() -> Progress {
+        let done = Arc::new(AtomicUsize::new(0));
+        let total = Arc::new(AtomicUsize::new(0));
+        let finished = Arc::new(AtomicBool::new(false));
+        let thread = std::io::stderr().is_terminal().then(|| {
+            let (done, total, finished) = (Arc::clone(&done), Arc::clone(&total), Arc::clone(&finished));
+            std::thread::spawn(move || {
+                let start = Instant::now();
+                while start.elapsed() < Duration::from_secs(1) {
+                    if finished.load(Ordering::Relaxed) {
+                        return;
+                    }
+                    std::thread::sleep(Duration::from_millis(20));
+                }
+                let bar = indicatif::ProgressBar::new(total.load(Ordering::Relaxed) as u64);
+                if let Ok(style) = indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} nodes") {
+                    bar.set_style(style.progress_chars("=> "));
+                }
+                while !finished.load(Ordering::Relaxed) {
+                    bar.set_length(total.load(Ordering::Relaxed) as u64);
+                    bar.set_position(done.load(Ordering::Relaxed) as u64);
+                    std::thread::sleep(Duration::from_millis(50));
+                }
+                bar.finish_and_clear();
+            })
+        });
+        Progress {
+            done,
+            total,
+            finished,
+            thread,
+        }
+    }
+
+    fn callback(&self) -> ocellus_engine::exec::ProgressFn {
+        let (done, total) = (Arc::clone(&self.done), Arc::clone(&self.total));
+        Arc::new(move |d, t| {
+            done.store(d, Ordering::Relaxed);
+            total.store(t, Ordering::Relaxed);
+        })
+    }
+
+    fn finish(mut self) {
+        self.finished.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}

@@ -1,0 +1,67 @@
+//! Every graph in `graphs/` is snapshot-tested, and its emitted files are byte-identical for
+//! `--threads 1` and `--threads 2`.
+
+mod common;
+
+use common::{example_graphs, files_below, ocellus, root, stderr, temp_dir};
+
+/// Graphs with a snapshot test below; a new graph must be added here.
+const SNAPSHOTTED: &[&str] = &["edges.ron", "two_branches.ron"];
+
+fn summary(graph: &str, threads: usize) -> String {
+    let registry = ocellus_nodes::builtin_registry().unwrap();
+    let report = ocellus_engine::testing::run_graph(&registry, root().join("graphs").join(graph), threads, &[])
+        .unwrap_or_else(|e| panic!("{graph}: {e}"));
+    ocellus_engine::summary::summarize_outputs(&report.outputs)
+}
+
+fn check_graph(graph: &str) {
+    let one = summary(graph, 1);
+    let two = summary(graph, 2);
+    assert_eq!(one, two, "{graph}: summary differs between 1 and 2 threads");
+    insta::assert_snapshot!(graph.trim_end_matches(".ron"), one);
+}
+
+#[test]
+fn edges() {
+    check_graph("edges.ron");
+}
+
+#[test]
+fn two_branches() {
+    check_graph("two_branches.ron");
+}
+
+#[test]
+fn every_example_graph_is_snapshot_tested_and_valid() {
+    for path in example_graphs() {
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        assert!(SNAPSHOTTED.contains(&name.as_str()), "{name} has no snapshot test in tests/graphs.rs");
+        let out = ocellus(&["check", path.to_str().unwrap()]);
+        assert!(out.status.success(), "{name}: {}", stderr(&out));
+    }
+}
+
+#[test]
+fn emitted_files_are_identical_for_one_and_two_threads() {
+    for path in example_graphs() {
+        let dir = temp_dir("threads");
+        let mut emitted = Vec::new();
+        for threads in ["1", "2"] {
+            let out_dir = dir.join(threads);
+            let out = ocellus(&[
+                "run",
+                path.to_str().unwrap(),
+                "--threads",
+                threads,
+                "--emit",
+                out_dir.to_str().unwrap(),
+            ]);
+            assert!(out.status.success(), "{}: {}", path.display(), stderr(&out));
+            emitted.push(files_below(&out_dir));
+        }
+        assert!(!emitted[0].is_empty(), "{} emitted nothing", path.display());
+        assert_eq!(emitted[0], emitted[1], "{}: files differ between thread counts", path.display());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
