@@ -57,10 +57,10 @@ impl OpFactory for TestFactory {
         &self.info
     }
     fn build(&self, params: &ParamMap) -> Result<Arc<dyn Operator>, String> {
-        if let Some(ParamValue::Float(x)) = params.get("value") {
-            if *x == 13.0 {
-                return Err("13 is unlucky".into());
-            }
+        if let Some(ParamValue::Float(x)) = params.get("value")
+            && *x == 13.0
+        {
+            return Err("13 is unlucky".into());
         }
         Ok(Arc::new(TestOp {
             id: self.info.id.clone(),
