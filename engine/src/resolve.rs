@@ -250,7 +250,7 @@ pub fn load_source(
     let exports = ctx.resolve_scope(&spec, "", &scope_inputs, &overrides, 0);
     let mut outputs = Vec::new();
     for (name, _) in &spec.outputs {
-        if let Some(Some((from, ty))) = exports.get(&name.value) {
+        if let Some(Source::Port(from, ty)) = exports.get(&name.value) {
             outputs.push(GraphOutput {
                 name: name.value.clone(),
                 from: *from,
@@ -283,10 +283,22 @@ fn canonical(path: &Path) -> PathBuf {
 /// What a reference resolves to.
 #[derive(Debug, Clone)]
 enum Source {
-    /// A typed port.
+    /// A typed port of a runnable node.
     Port(PortRef, PortType),
-    /// Something upstream already failed; don't pile on more errors.
+    /// A typed port of a node that has its own errors: downstream type checks still happen, but
+    /// the consumer cannot run.
+    Typed(PortType),
+    /// Something upstream is unknown (e.g. an unknown operator); don't pile on more errors.
     Poisoned,
+}
+
+impl Source {
+    fn ty(&self) -> Option<&PortType> {
+        match self {
+            Source::Port(_, t) | Source::Typed(t) => Some(t),
+            Source::Poisoned => None,
+        }
+    }
 }
 
 /// A resolved node of one scope.
@@ -295,9 +307,14 @@ enum Slot {
     Pending,
     /// An operator node.
     Op { index: usize },
+    /// An operator node with errors of its own: its ports are known, but it will not run.
+    Invalid {
+        info: Arc<crate::op::OpInfo>,
+        output_types: Vec<PortType>,
+    },
     /// A subgraph node: its exported outputs.
     Subgraph {
-        exports: HashMap<String, Option<(PortRef, PortType)>>,
+        exports: Exports,
         names: Vec<String>,
     },
     /// Had errors.
@@ -311,7 +328,7 @@ struct Resolver<'a> {
     include_stack: Vec<PathBuf>,
 }
 
-type Exports = HashMap<String, Option<(PortRef, PortType)>>;
+type Exports = HashMap<String, Source>;
 
 impl Resolver<'_> {
     /// Resolves the nodes of one graph file, appending them in topological order; returns its
@@ -382,11 +399,7 @@ impl Resolver<'_> {
         for (name, reference) in &spec.outputs {
             let resolved =
                 self.resolve_reference(&source, reference, &index, &slots, scope_inputs, "output");
-            let value = match resolved {
-                Some(Source::Port(p, t)) => Some((p, t)),
-                _ => None,
-            };
-            exports.insert(name.value.clone(), value);
+            exports.insert(name.value.clone(), resolved.unwrap_or(Source::Poisoned));
         }
         exports
     }
@@ -529,26 +542,30 @@ impl Resolver<'_> {
                 continue;
             };
             let expected = &info.inputs[port_index].ty;
+            let Some(ty) = resolved.as_ref().and_then(Source::ty) else {
+                poisoned = true;
+                continue;
+            };
+            let mapped = if ty == expected {
+                false
+            } else if ty.element() == Some(expected) {
+                true
+            } else {
+                self.diags.push(type_mismatch(
+                    source,
+                    reference,
+                    ty,
+                    &node.name.value,
+                    port,
+                    expected,
+                ));
+                continue;
+            };
             match resolved {
-                Some(Source::Port(from, ty)) => {
-                    let mapped = if &ty == expected {
-                        false
-                    } else if ty.element() == Some(expected) {
-                        true
-                    } else {
-                        self.diags.push(type_mismatch(
-                            source,
-                            reference,
-                            &ty,
-                            &node.name.value,
-                            port,
-                            expected,
-                        ));
-                        continue;
-                    };
-                    inputs[port_index] = Some(InputEdge { from, mapped });
+                Some(Source::Port(from, _)) => {
+                    inputs[port_index] = Some(InputEdge { from, mapped })
                 }
-                Some(Source::Poisoned) | None => poisoned = true,
+                _ => poisoned = true,
             }
         }
         let connected: BTreeSet<&str> = node.inputs.iter().map(|(p, _)| p.value.as_str()).collect();
@@ -582,8 +599,24 @@ impl Resolver<'_> {
                 )),
             );
         }
+        let mapped = inputs.iter().flatten().any(|e| e.mapped);
+        let output_types: Vec<PortType> = info
+            .outputs
+            .iter()
+            .map(|p| {
+                if mapped {
+                    p.ty.clone().list_of()
+                } else {
+                    p.ty.clone()
+                }
+            })
+            .collect();
+        let invalid = Slot::Invalid {
+            info: Arc::clone(&info),
+            output_types: output_types.clone(),
+        };
         let Some(params) = params else {
-            return Slot::Failed;
+            return invalid;
         };
         let op = match factory.build(&params) {
             Ok(op) => op,
@@ -597,24 +630,12 @@ impl Resolver<'_> {
                     )
                     .label("these parameters"),
                 );
-                return Slot::Failed;
+                return invalid;
             }
         };
         if poisoned || self.diags.len() > errors_before {
-            return Slot::Failed;
+            return invalid;
         }
-        let mapped = inputs.iter().flatten().any(|e| e.mapped);
-        let output_types = info
-            .outputs
-            .iter()
-            .map(|p| {
-                if mapped {
-                    p.ty.clone().list_of()
-                } else {
-                    p.ty.clone()
-                }
-            })
-            .collect();
         self.nodes.push(Node {
             name: format!("{prefix}{}", node.name.value),
             info,
@@ -781,21 +802,24 @@ impl Resolver<'_> {
                 continue;
             };
             match self.resolve_reference(source, reference, index, slots, scope_inputs, "input") {
-                Some(Source::Port(from, ty)) if ty == declared => {
-                    bound.insert(name.value.clone(), Source::Port(from, ty));
+                Some(src) if src.ty() == Some(&declared) => {
+                    ok &= matches!(src, Source::Port(..));
+                    bound.insert(name.value.clone(), src);
                 }
-                Some(Source::Port(_, ty)) => {
-                    self.diags.push(type_mismatch(
-                        source,
-                        reference,
-                        &ty,
-                        &node.name.value,
-                        port,
-                        &declared,
-                    ));
+                Some(src) => {
+                    if let Some(ty) = src.ty() {
+                        self.diags.push(type_mismatch(
+                            source,
+                            reference,
+                            ty,
+                            &node.name.value,
+                            port,
+                            &declared,
+                        ));
+                    }
                     ok = false;
                 }
-                _ => ok = false,
+                None => ok = false,
             }
         }
         for (port, _) in &node.inputs {
@@ -912,22 +936,22 @@ impl Resolver<'_> {
             value: port.to_string(),
             span: port_span,
         };
-        match &slots[j] {
+        let (info, output_types, global) = match &slots[j] {
             Slot::Op { index: global } => {
                 let node = &self.nodes[*global];
-                match node.info.outputs.iter().position(|p| p.name == port) {
-                    Some(p) => Some(Source::Port(
-                        PortRef {
-                            node: *global,
-                            port: p,
-                        },
-                        node.output_types[p].clone(),
-                    )),
+                (
+                    Arc::clone(&node.info),
+                    node.output_types.clone(),
+                    Some(*global),
+                )
+            }
+            Slot::Invalid { info, output_types } => (Arc::clone(info), output_types.clone(), None),
+            Slot::Subgraph { exports, names } => {
+                return match exports.get(port) {
+                    Some(src) => Some(src.clone()),
                     None => {
-                        let names: Vec<&str> =
-                            node.info.outputs.iter().map(|p| p.name.as_str()).collect();
-                        let msg =
-                            format!("node `{target}` ({}) has no output `{port}`", node.info.id);
+                        let names: Vec<&str> = names.iter().map(String::as_str).collect();
+                        let msg = format!("subgraph node `{target}` has no output `{port}`");
                         self.diags.push(unknown_name_diag(
                             Code::UnknownOutput,
                             source,
@@ -939,27 +963,32 @@ impl Resolver<'_> {
                         ));
                         None
                     }
-                }
+                };
             }
-            Slot::Subgraph { exports, names } => match exports.get(port) {
-                Some(Some((p, t))) => Some(Source::Port(*p, t.clone())),
-                Some(None) => Some(Source::Poisoned),
-                None => {
-                    let names: Vec<&str> = names.iter().map(String::as_str).collect();
-                    let msg = format!("subgraph node `{target}` has no output `{port}`");
-                    self.diags.push(unknown_name_diag(
-                        Code::UnknownOutput,
-                        source,
-                        &port_name,
-                        &msg,
-                        "no such output",
-                        &names,
-                        "outputs",
-                    ));
-                    None
-                }
-            },
-            Slot::Failed | Slot::Pending => Some(Source::Poisoned),
+            Slot::Failed | Slot::Pending => return Some(Source::Poisoned),
+        };
+        match info.outputs.iter().position(|p| p.name == port) {
+            Some(p) => {
+                let ty = output_types[p].clone();
+                Some(match global {
+                    Some(node) => Source::Port(PortRef { node, port: p }, ty),
+                    None => Source::Typed(ty),
+                })
+            }
+            None => {
+                let names: Vec<&str> = info.outputs.iter().map(|p| p.name.as_str()).collect();
+                let msg = format!("node `{target}` ({}) has no output `{port}`", info.id);
+                self.diags.push(unknown_name_diag(
+                    Code::UnknownOutput,
+                    source,
+                    &port_name,
+                    &msg,
+                    "no such output",
+                    &names,
+                    "outputs",
+                ));
+                None
+            }
         }
     }
 
