@@ -175,7 +175,10 @@ fn snapshot(registry: &Registry, path: &Path, threads: usize) -> ExitCode {
     };
     match ocellus_engine::run(&graph, &options) {
         Ok(report) => {
-            print!("{}", ocellus_engine::summary::summarize_outputs(&report.outputs));
+            print!(
+                "{}",
+                ocellus_engine::summary::summarize_outputs(&report.outputs)
+            );
             report_failures(&report)
         }
         Err(e) => {
@@ -216,7 +219,11 @@ fn run(registry: &Registry, args: &RunArgs) -> ExitCode {
             threads,
             outputs: args.output.clone(),
             // `--repeat` measures computation: results are never reused between repeats.
-            cache_dir: if args.repeat > 1 { None } else { args.cache.clone() },
+            cache_dir: if args.repeat > 1 {
+                None
+            } else {
+                args.cache.clone()
+            },
             progress: Some(progress.callback()),
         };
         let result = ocellus_engine::run(&graph, &options);
@@ -241,7 +248,10 @@ fn run(registry: &Registry, args: &RunArgs) -> ExitCode {
             code = ExitCode::from(EXIT_FAILED);
         }
     } else {
-        print!("{}", ocellus_engine::summary::summarize_outputs(&last.outputs));
+        print!(
+            "{}",
+            ocellus_engine::summary::summarize_outputs(&last.outputs)
+        );
     }
     if let Some(path) = &args.profile {
         if let Err(e) = profile.write(path) {
@@ -253,7 +263,10 @@ fn run(registry: &Registry, args: &RunArgs) -> ExitCode {
         .map(|b| format!(", process peak {}", render_bytes(b)))
         .unwrap_or_default();
     let timing = if args.repeat > 1 {
-        format!("median {:.2} ms over {} runs", profile.total_median_ms, args.repeat)
+        format!(
+            "median {:.2} ms over {} runs",
+            profile.total_median_ms, args.repeat
+        )
     } else {
         format!("{:.2} ms", last.elapsed.as_secs_f64() * 1e3)
     };
@@ -297,7 +310,8 @@ impl Progress {
         let total = Arc::new(AtomicUsize::new(0));
         let finished = Arc::new(AtomicBool::new(false));
         let thread = std::io::stderr().is_terminal().then(|| {
-            let (done, total, finished) = (Arc::clone(&done), Arc::clone(&total), Arc::clone(&finished));
+            let (done, total, finished) =
+                (Arc::clone(&done), Arc::clone(&total), Arc::clone(&finished));
             std::thread::spawn(move || {
                 let start = Instant::now();
                 while start.elapsed() < Duration::from_secs(1) {
@@ -307,7 +321,9 @@ impl Progress {
                     std::thread::sleep(Duration::from_millis(20));
                 }
                 let bar = indicatif::ProgressBar::new(total.load(Ordering::Relaxed) as u64);
-                if let Ok(style) = indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} nodes") {
+                if let Ok(style) = indicatif::ProgressStyle::with_template(
+                    "{elapsed_precise} [{bar:40}] {pos}/{len} nodes",
+                ) {
                     bar.set_style(style.progress_chars("=> "));
                 }
                 while !finished.load(Ordering::Relaxed) {

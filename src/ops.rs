@@ -24,7 +24,11 @@ pub fn ops(registry: &Registry, op: Option<&str>, json: bool) -> ExitCode {
     };
     if json {
         let list: Vec<Json> = infos.iter().map(|i| op_json(i)).collect();
-        let doc = if op.is_some() { list.into_iter().next().unwrap_or(Json::Null) } else { Json::Array(list) };
+        let doc = if op.is_some() {
+            list.into_iter().next().unwrap_or(Json::Null)
+        } else {
+            Json::Array(list)
+        };
         match serde_json::to_string_pretty(&doc) {
             Ok(text) => println!("{text}"),
             Err(e) => {
@@ -93,7 +97,10 @@ fn default_text(p: &ParamSpec) -> String {
 }
 
 fn op_text(info: &OpInfo) -> String {
-    let mut out = format!("{} (v{}, {})\n  {}\n\n", info.id, info.version, info.origin, info.summary);
+    let mut out = format!(
+        "{} (v{}, {})\n  {}\n\n",
+        info.id, info.version, info.origin, info.summary
+    );
     for line in wrap(&info.doc, 96) {
         out.push_str(&format!("  {line}\n"));
     }
@@ -104,7 +111,12 @@ fn op_text(info: &OpInfo) -> String {
         out.push_str(&format!("\n{title}:\n"));
         for p in ports {
             let opt = if p.optional { " (optional)" } else { "" };
-            out.push_str(&format!("  {:<12} {:<16} {}{opt}\n", p.name, p.ty.to_string(), p.doc));
+            out.push_str(&format!(
+                "  {:<12} {:<16} {}{opt}\n",
+                p.name,
+                p.ty.to_string(),
+                p.doc
+            ));
         }
     };
     ports("inputs", &info.inputs, &mut out);
@@ -112,9 +124,18 @@ fn op_text(info: &OpInfo) -> String {
     if !info.params.is_empty() {
         out.push_str("\nparams:\n");
         for p in &info.params {
-            let unit = if p.unit.is_empty() { String::new() } else { format!(" [{}]", p.unit) };
+            let unit = if p.unit.is_empty() {
+                String::new()
+            } else {
+                format!(" [{}]", p.unit)
+            };
             let range = p.range_text().map(|r| format!(", {r}")).unwrap_or_default();
-            out.push_str(&format!("  {}: {}{unit} = {}{range}\n", p.name, p.ty, default_text(p)));
+            out.push_str(&format!(
+                "  {}: {}{unit} = {}{range}\n",
+                p.name,
+                p.ty,
+                default_text(p)
+            ));
             for line in wrap(&p.doc, 90) {
                 out.push_str(&format!("      {line}\n"));
             }

@@ -38,7 +38,11 @@ impl Profile {
     pub fn from_reports(reports: &[RunReport]) -> Profile {
         let mut samples: BTreeMap<String, (String, Vec<f64>)> = BTreeMap::new();
         for report in reports {
-            for node in report.nodes.iter().filter(|n| n.status == NodeStatus::Computed) {
+            for node in report
+                .nodes
+                .iter()
+                .filter(|n| n.status == NodeStatus::Computed)
+            {
                 samples
                     .entry(node.name.clone())
                     .or_insert_with(|| (node.op.clone(), Vec::new()))
@@ -59,12 +63,19 @@ impl Profile {
                 (name, profile)
             })
             .collect();
-        let mut totals: Vec<f64> = reports.iter().map(|r| r.elapsed.as_secs_f64() * 1e3).collect();
+        let mut totals: Vec<f64> = reports
+            .iter()
+            .map(|r| r.elapsed.as_secs_f64() * 1e3)
+            .collect();
         totals.sort_by(f64::total_cmp);
         Profile {
             nodes,
             total_median_ms: median(&totals),
-            peak_bytes: reports.iter().map(|r| r.peak_bytes as u64).max().unwrap_or(0),
+            peak_bytes: reports
+                .iter()
+                .map(|r| r.peak_bytes as u64)
+                .max()
+                .unwrap_or(0),
         }
     }
 

@@ -19,9 +19,6 @@ pub fn print_diagnostics(diags: &Diagnostics, graph: &Path) {
             out = format!("{}: {}\n", d.location().unwrap_or_default(), d.message);
         }
         eprint!("{out}");
-        if let Some(loc) = d.location() {
-            eprintln!("  --> {loc}\n");
-        }
     }
     let n = diags.len();
     eprintln!(

@@ -45,22 +45,48 @@ fn ops_json_documents_every_operator() {
     }
     for op in ops {
         let id = op["id"].as_str().unwrap();
-        assert_eq!(op["family"].as_str().unwrap(), id.split('.').next().unwrap());
-        assert!(!op["summary"].as_str().unwrap().is_empty(), "{id} has no summary");
+        assert_eq!(
+            op["family"].as_str().unwrap(),
+            id.split('.').next().unwrap()
+        );
+        assert!(
+            !op["summary"].as_str().unwrap().is_empty(),
+            "{id} has no summary"
+        );
         assert!(!op["doc"].as_str().unwrap().is_empty(), "{id} has no doc");
         assert_eq!(op["origin"], "builtin");
-        for port in op["inputs"].as_array().unwrap().iter().chain(op["outputs"].as_array().unwrap()) {
-            assert!(port["name"].is_string() && port["type"].is_string(), "{id}: {port}");
+        for port in op["inputs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .chain(op["outputs"].as_array().unwrap())
+        {
+            assert!(
+                port["name"].is_string() && port["type"].is_string(),
+                "{id}: {port}"
+            );
         }
         for param in op["params"].as_array().unwrap() {
             for key in ["name", "type", "default", "range", "doc", "unit"] {
-                assert!(param.get(key).is_some(), "{id}: param without {key}: {param}");
+                assert!(
+                    param.get(key).is_some(),
+                    "{id}: param without {key}: {param}"
+                );
             }
-            assert!(!param["doc"].as_str().unwrap().is_empty(), "{id}.{} undocumented", param["name"]);
+            assert!(
+                !param["doc"].as_str().unwrap().is_empty(),
+                "{id}.{} undocumented",
+                param["name"]
+            );
         }
     }
     let gaussian = ops.iter().find(|o| o["id"] == "filter.gaussian").unwrap();
-    let sigma = gaussian["params"].as_array().unwrap().iter().find(|p| p["name"] == "sigma").unwrap();
+    let sigma = gaussian["params"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["name"] == "sigma")
+        .unwrap();
     assert_eq!(sigma["type"], "float");
     assert_eq!(sigma["unit"], "px");
 }
@@ -73,7 +99,11 @@ fn ops_shows_one_operator_and_suggests_on_typos() {
     assert!(text.contains("sigma") && text.contains("border"), "{text}");
     let out = ocellus(&["ops", "filter.gausian"]);
     assert_eq!(out.status.code(), Some(2));
-    assert!(stderr(&out).contains("did you mean `filter.gaussian`"), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("did you mean `filter.gaussian`"),
+        "{}",
+        stderr(&out)
+    );
 }
 
 #[test]
@@ -81,10 +111,22 @@ fn profile_json_has_the_documented_shape() {
     let dir = temp_dir("profile");
     let graph = small_graph(&dir);
     let profile = dir.join("p.json");
-    let out = ocellus(&["run", &graph, "--repeat", "3", "--profile", profile.to_str().unwrap()]);
+    let out = ocellus(&[
+        "run",
+        &graph,
+        "--repeat",
+        "3",
+        "--profile",
+        profile.to_str().unwrap(),
+    ]);
     assert!(out.status.success(), "{}", stderr(&out));
     let json: Json = serde_json::from_str(&std::fs::read_to_string(&profile).unwrap()).unwrap();
-    let keys: Vec<&str> = json.as_object().unwrap().keys().map(String::as_str).collect();
+    let keys: Vec<&str> = json
+        .as_object()
+        .unwrap()
+        .keys()
+        .map(String::as_str)
+        .collect();
     assert_eq!(keys, ["nodes", "peak_bytes", "total_median_ms"]);
     assert!(json["total_median_ms"].as_f64().unwrap() > 0.0);
     assert!(json["peak_bytes"].as_u64().unwrap() >= 64 * 48);
@@ -131,10 +173,17 @@ fn output_selection_runs_only_what_it_needs() {
     assert!(out.status.success(), "{}", stderr(&out));
     assert!(stderr(&out).contains("1 computed"), "{}", stderr(&out));
     let text = stdout(&out);
-    assert!(text.contains("\"noise\"") && !text.contains("\"blur\""), "{text}");
+    assert!(
+        text.contains("\"noise\"") && !text.contains("\"blur\""),
+        "{text}"
+    );
     let out = ocellus(&["run", &graph, "--output", "nois"]);
     assert_eq!(out.status.code(), Some(2));
-    assert!(stderr(&out).contains("did you mean `noise`"), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("did you mean `noise`"),
+        "{}",
+        stderr(&out)
+    );
 }
 
 #[test]
@@ -144,13 +193,27 @@ fn set_overrides_are_checked_like_the_file() {
     let out = ocellus(&["run", &graph, "--set", "blur.sigma=-1"]);
     assert_eq!(out.status.code(), Some(2));
     assert!(stderr(&out).contains("--set:1:12"), "{}", stderr(&out));
-    let out = ocellus(&["check", &graph, "--set", "blurr.sigma=1", "--set", "card.kind=chekerboard"]);
+    let out = ocellus(&[
+        "check",
+        &graph,
+        "--set",
+        "blurr.sigma=1",
+        "--set",
+        "card.kind=chekerboard",
+    ]);
     assert_eq!(out.status.code(), Some(2));
     let err = stderr(&out);
     assert!(err.contains("did you mean `blur`"), "{err}");
     assert!(err.contains("did you mean \"checkerboard\""), "{err}");
     assert!(err.contains("2 problems"), "{err}");
-    let out = ocellus(&["run", &graph, "--set", "card.kind=noise", "--set", "card.square=32"]);
+    let out = ocellus(&[
+        "run",
+        &graph,
+        "--set",
+        "card.kind=noise",
+        "--set",
+        "card.square=32",
+    ]);
     assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
 }
 
@@ -171,10 +234,18 @@ fn a_failing_node_fails_the_run_but_other_outputs_are_emitted() {
     )
     .unwrap();
     let emit = dir.join("out");
-    let out = ocellus(&["run", graph.to_str().unwrap(), "--emit", emit.to_str().unwrap()]);
+    let out = ocellus(&[
+        "run",
+        graph.to_str().unwrap(),
+        "--emit",
+        emit.to_str().unwrap(),
+    ]);
     assert_eq!(out.status.code(), Some(1));
     let err = stderr(&out);
-    assert!(err.contains("g.ron:3:9: node `missing` (io.read_image) failed"), "{err}");
+    assert!(
+        err.contains("g.ron:3:9: node `missing` (io.read_image) failed"),
+        "{err}"
+    );
     assert!(err.contains("no_such_file.png"), "{err}");
     assert!(!err.contains("panicked"), "{err}");
     assert!(emit.join("card.png").exists());
@@ -200,9 +271,17 @@ fn write_image_is_a_side_effect_that_always_runs() {
     for _ in 0..2 {
         std::fs::remove_dir_all(dir.join("out")).ok();
         std::fs::create_dir_all(dir.join("out")).unwrap();
-        let out = ocellus(&["run", graph.to_str().unwrap(), "--cache", cache.to_str().unwrap()]);
+        let out = ocellus(&[
+            "run",
+            graph.to_str().unwrap(),
+            "--cache",
+            cache.to_str().unwrap(),
+        ]);
         assert!(out.status.success(), "{}", stderr(&out));
-        let written: Vec<_> = std::fs::read_dir(dir.join("out")).unwrap().map(|e| e.unwrap().file_name()).collect();
+        let written: Vec<_> = std::fs::read_dir(dir.join("out"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
         assert_eq!(written, ["card.png"], "exactly the file, no temporaries");
     }
 }
@@ -214,7 +293,10 @@ fn dot_and_snapshot_and_check() {
     let out = ocellus(&["dot", &graph]);
     assert!(out.status.success());
     let dot = stdout(&out);
-    assert!(dot.starts_with("digraph") && dot.contains("filter.gaussian"), "{dot}");
+    assert!(
+        dot.starts_with("digraph") && dot.contains("filter.gaussian"),
+        "{dot}"
+    );
     let out = ocellus(&["check", &graph]);
     assert!(out.status.success());
     assert!(stdout(&out).contains("ok"), "{}", stdout(&out));

@@ -10,8 +10,13 @@ const SNAPSHOTTED: &[&str] = &["edges.ron", "two_branches.ron"];
 
 fn summary(graph: &str, threads: usize) -> String {
     let registry = ocellus_nodes::builtin_registry().unwrap();
-    let report = ocellus_engine::testing::run_graph(&registry, root().join("graphs").join(graph), threads, &[])
-        .unwrap_or_else(|e| panic!("{graph}: {e}"));
+    let report = ocellus_engine::testing::run_graph(
+        &registry,
+        root().join("graphs").join(graph),
+        threads,
+        &[],
+    )
+    .unwrap_or_else(|e| panic!("{graph}: {e}"));
     ocellus_engine::summary::summarize_outputs(&report.outputs)
 }
 
@@ -36,7 +41,10 @@ fn two_branches() {
 fn every_example_graph_is_snapshot_tested_and_valid() {
     for path in example_graphs() {
         let name = path.file_name().unwrap().to_string_lossy().into_owned();
-        assert!(SNAPSHOTTED.contains(&name.as_str()), "{name} has no snapshot test in tests/graphs.rs");
+        assert!(
+            SNAPSHOTTED.contains(&name.as_str()),
+            "{name} has no snapshot test in tests/graphs.rs"
+        );
         let out = ocellus(&["check", path.to_str().unwrap()]);
         assert!(out.status.success(), "{name}: {}", stderr(&out));
     }
@@ -61,7 +69,12 @@ fn emitted_files_are_identical_for_one_and_two_threads() {
             emitted.push(files_below(&out_dir));
         }
         assert!(!emitted[0].is_empty(), "{} emitted nothing", path.display());
-        assert_eq!(emitted[0], emitted[1], "{}: files differ between thread counts", path.display());
+        assert_eq!(
+            emitted[0],
+            emitted[1],
+            "{}: files differ between thread counts",
+            path.display()
+        );
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

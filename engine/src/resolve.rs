@@ -822,6 +822,11 @@ impl Resolver<'_> {
                 None => ok = false,
             }
         }
+        // Inputs that failed to bind are still declared: the subgraph must not report them as
+        // unknown, only skip what depends on them.
+        for (name, _) in &sub_spec.inputs {
+            bound.entry(name.value.clone()).or_insert(Source::Poisoned);
+        }
         for (port, _) in &node.inputs {
             if !sub_spec.inputs.iter().any(|(n, _)| n.value == port.value) {
                 let names: Vec<&str> = sub_spec
@@ -1290,7 +1295,7 @@ fn describe(v: &RonValue) -> String {
         RonValue::Float(x) => format!("float `{x}`"),
         RonValue::Str(s) => format!("string {s:?}"),
         RonValue::Ident(s) => format!("bare word `{s}`"),
-        other => format!("a {}", other.kind_name()),
+        other => crate::ron_syntax::a_kind(other),
     }
 }
 

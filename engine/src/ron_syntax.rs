@@ -1628,3 +1628,14 @@ mod tests {
         assert!(!boxed.to_string().is_empty());
     }
 }
+
+/// The kind of a value with its article, for messages: "an integer", "a string".
+pub fn a_kind(value: &RonValue) -> String {
+    let kind = value.kind_name();
+    let article = if kind.starts_with(['a', 'e', 'i', 'o', 'u']) {
+        "an"
+    } else {
+        "a"
+    };
+    format!("{article} {kind}")
+}

@@ -18,7 +18,7 @@
 use std::sync::Arc;
 
 use crate::diag::{Code, Diagnostic, Diagnostics, SourceFile, suggest};
-use crate::ron_syntax::{RonValue, Span, Spanned};
+use crate::ron_syntax::{RonValue, Span, Spanned, a_kind};
 
 /// A name with its span.
 pub type Name = Spanned<String>;
@@ -176,8 +176,8 @@ fn struct_fields<'a>(
                     source,
                     head_span(v),
                     format!(
-                        "{what} must be a struct `(field: value, ...)`, found a {}",
-                        other.kind_name()
+                        "{what} must be a struct `(field: value, ...)`, found {}",
+                        a_kind(other)
                     ),
                 )
                 .label("not a struct"),
@@ -204,7 +204,7 @@ fn string(
                     Code::Shape,
                     source,
                     v.span,
-                    format!("{what} must be a string, found a {}", other.kind_name()),
+                    format!("{what} must be a string, found {}", a_kind(other)),
                 )
                 .label("expected a string")
                 .maybe_help(ident_hint(other)),
@@ -238,8 +238,8 @@ fn string_map(
                     source,
                     head_span(v),
                     format!(
-                        "{what} must be a map `{{ \"key\": \"value\" }}`, found a {}",
-                        other.kind_name()
+                        "{what} must be a map `{{ \"key\": \"value\" }}`, found {}",
+                        a_kind(other)
                     ),
                 )
                 .label("expected a map"),
@@ -287,8 +287,8 @@ fn nodes(
                     source,
                     head_span(v),
                     format!(
-                        "`nodes` must be a map `{{ \"name\": (op: ...), ... }}`, found a {}",
-                        other.kind_name()
+                        "`nodes` must be a map `{{ \"name\": (op: ...), ... }}`, found {}",
+                        a_kind(other)
                     ),
                 )
                 .label("expected a map of nodes"),
@@ -346,12 +346,16 @@ fn node(
 ) -> Option<NodeSpec> {
     let fields = struct_fields(source, v, "Node", &format!("node `{}`", name.value), diags)?;
     let mut op = None;
+    let mut saw_op = false;
     let mut inputs = Vec::new();
     let mut params = Vec::new();
     let mut params_span = name.span;
     for (key, value) in fields {
         match key.value.as_str() {
-            "op" => op = string(source, value, "`op`", diags),
+            "op" => {
+                saw_op = true;
+                op = string(source, value, "`op`", diags);
+            }
             "inputs" => inputs = string_map(source, value, "`inputs`", diags),
             "params" => {
                 params_span = value.span;
@@ -365,8 +369,8 @@ fn node(
                             source,
                             head_span(value),
                             format!(
-                                "`params` must be a struct `(name: value, ...)`, found a {}",
-                                other.kind_name()
+                                "`params` must be a struct `(name: value, ...)`, found {}",
+                                a_kind(other)
                             ),
                         )
                         .label("expected `(name: value, ...)`"),
@@ -377,6 +381,9 @@ fn node(
         }
     }
     let Some(op) = op else {
+        if saw_op {
+            return None;
+        }
         diags.push(
             Diagnostic::at(Code::Shape, source, name.span, format!("node `{}` has no `op`", name.value))
                 .label("missing `op`")

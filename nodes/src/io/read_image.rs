@@ -3,7 +3,9 @@
 use std::path::PathBuf;
 
 use ocellus_engine::image_io::{DecodeLimits, read_image};
-use ocellus_engine::{Inputs, Op, OpError, Operator, Outputs, PortSpec, PortType, RunContext, Value};
+use ocellus_engine::{
+    Inputs, Op, OpError, Operator, Outputs, PortSpec, PortType, RunContext, Value,
+};
 
 ocellus_engine::params! {
     /// Parameters of [`ReadImage`].
@@ -28,13 +30,15 @@ impl Operator for ReadImage {
             max_pixels: self.params.max_pixels,
             ..DecodeLimits::default()
         };
-        let image = read_image(&self.params.path, &limits).map_err(|e| OpError::failed(e.to_string()))?;
+        let image =
+            read_image(&self.params.path, &limits).map_err(|e| OpError::failed(e.to_string()))?;
         Ok(Outputs::new().with("image", Value::image(image)))
     }
 
     /// The file's contents decide the result, so they are part of the cache key.
     fn fingerprint(&self) -> Result<Vec<u8>, OpError> {
-        let bytes = std::fs::read(&self.params.path).map_err(|e| OpError::io(&self.params.path, e))?;
+        let bytes =
+            std::fs::read(&self.params.path).map_err(|e| OpError::io(&self.params.path, e))?;
         Ok(ocellus_engine::cache::content_hash(&bytes).to_vec())
     }
 }
@@ -53,7 +57,11 @@ impl Op for ReadImage {
     }
 
     fn outputs() -> Vec<PortSpec> {
-        vec![PortSpec::new("image", PortType::Image, "The decoded image.")]
+        vec![PortSpec::new(
+            "image",
+            PortType::Image,
+            "The decoded image.",
+        )]
     }
 
     fn new(params: ReadImageParams) -> Result<Self, String> {
@@ -117,7 +125,11 @@ mod tests {
             ..ReadImageParams::default()
         })
         .unwrap();
-        let err = op.run(&ctx(), &Inputs::new(&[], &[])).err().unwrap().to_string();
+        let err = op
+            .run(&ctx(), &Inputs::new(&[], &[]))
+            .err()
+            .unwrap()
+            .to_string();
         assert!(err.contains("bad.png"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
     }

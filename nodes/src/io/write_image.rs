@@ -3,7 +3,9 @@
 use std::path::PathBuf;
 
 use ocellus_engine::image_io::write_image;
-use ocellus_engine::{Inputs, Op, OpError, Operator, Outputs, PortSpec, PortType, RunContext, Value};
+use ocellus_engine::{
+    Inputs, Op, OpError, Operator, Outputs, PortSpec, PortType, RunContext, Value,
+};
 
 ocellus_engine::params! {
     /// Parameters of [`WriteImage`].
@@ -35,7 +37,10 @@ impl Operator for WriteImage {
 
 /// `dir/name.ext` → `dir/name_000k.ext`.
 fn numbered(path: &std::path::Path, k: usize) -> PathBuf {
-    let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
     let name = match path.extension() {
         Some(ext) => format!("{stem}_{k:04}.{}", ext.to_string_lossy()),
         None => format!("{stem}_{k:04}"),
@@ -55,7 +60,11 @@ impl Op for WriteImage {
     const SIDE_EFFECTS: bool = true;
 
     fn inputs() -> Vec<PortSpec> {
-        vec![PortSpec::new("image", PortType::Image, "The image to write.")]
+        vec![PortSpec::new(
+            "image",
+            PortType::Image,
+            "The image to write.",
+        )]
     }
 
     fn outputs() -> Vec<PortSpec> {
@@ -66,7 +75,10 @@ impl Op for WriteImage {
         if params.path.as_os_str().is_empty() {
             return Err("`path` is required".into());
         }
-        let ext = params.path.extension().map(|e| e.to_string_lossy().to_lowercase());
+        let ext = params
+            .path
+            .extension()
+            .map(|e| e.to_string_lossy().to_lowercase());
         let known = ext
             .as_deref()
             .is_some_and(|e| ocellus_engine::image_io::ImageFormat::from_extension(e).is_some());
@@ -116,7 +128,11 @@ mod tests {
 
     #[test]
     fn unknown_extension_is_rejected_at_load() {
-        let err = WriteImage::new(WriteImageParams { path: "x.bmpz".into() }).err().unwrap();
+        let err = WriteImage::new(WriteImageParams {
+            path: "x.bmpz".into(),
+        })
+        .err()
+        .unwrap();
         assert!(err.contains(".png"), "{err}");
         assert!(WriteImage::new(WriteImageParams::default()).is_err());
     }
