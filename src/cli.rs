@@ -253,11 +253,11 @@ fn run(registry: &Registry, args: &RunArgs) -> ExitCode {
             ocellus_engine::summary::summarize_outputs(&last.outputs)
         );
     }
-    if let Some(path) = &args.profile {
-        if let Err(e) = profile.write(path) {
-            eprintln!("error: cannot write profile {}: {e}", path.display());
-            code = ExitCode::from(EXIT_FAILED);
-        }
+    if let Some(path) = &args.profile
+        && let Err(e) = profile.write(path)
+    {
+        eprintln!("error: cannot write profile {}: {e}", path.display());
+        code = ExitCode::from(EXIT_FAILED);
     }
     let rss = crate::report::peak_rss_bytes()
         .map(|b| format!(", process peak {}", render_bytes(b)))

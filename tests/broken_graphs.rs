@@ -2,6 +2,8 @@
 //! garbage bytes and deep nesting. Each must give exit 2 from both `check` and `run`, with the
 //! expected `file:line:col` and message, and never a panic or a backtrace.
 
+#![allow(clippy::unwrap_used, clippy::expect_used)] // test code: a failed unwrap is a failed test
+
 mod common;
 
 use common::{ocellus, root, stderr};
@@ -165,7 +167,11 @@ const CORPUS: &[(&str, &str, &[&str])] = &[
         "4:89",
         &["`roi` expects 4 values, found 3"],
     ),
-    ("36_recursive_subgraph.ron", "sub/includes_parent.ron:3:46", &["includes itself"]),
+    (
+        "36_recursive_subgraph.ron",
+        "sub/includes_parent.ron:3:46",
+        &["includes itself"],
+    ),
     ("37_deep_nesting.ron", "1:129", &["nesting too deep"]),
     ("38_integer_overflow.ron", "3:57", &["integer out of range"]),
     (

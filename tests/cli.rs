@@ -1,6 +1,8 @@
 //! The CLI contract: flags, exit codes, JSON formats, caching and failure isolation, as users and
 //! scripts see them.
 
+#![allow(clippy::unwrap_used, clippy::expect_used)] // test code: a failed unwrap is a failed test
+
 mod common;
 
 use common::{ocellus, stderr, stdout, temp_dir};

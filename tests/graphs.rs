@@ -1,6 +1,8 @@
 //! Every graph in `graphs/` is snapshot-tested, and its emitted files are byte-identical for
 //! `--threads 1` and `--threads 2`.
 
+#![allow(clippy::unwrap_used, clippy::expect_used)] // test code: a failed unwrap is a failed test
+
 mod common;
 
 use common::{example_graphs, files_below, ocellus, root, stderr, temp_dir};

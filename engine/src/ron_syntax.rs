@@ -1006,6 +1006,17 @@ impl<'a> Parser<'a> {
         }
     }
 }
+
+/// The kind of a value with its article, for messages: "an integer", "a string".
+pub fn a_kind(value: &RonValue) -> String {
+    let kind = value.kind_name();
+    let article = if kind.starts_with(['a', 'e', 'i', 'o', 'u']) {
+        "an"
+    } else {
+        "a"
+    };
+    format!("{article} {kind}")
+}
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1627,15 +1638,4 @@ mod tests {
         let boxed: Box<dyn std::error::Error> = Box::new(e);
         assert!(!boxed.to_string().is_empty());
     }
-}
-
-/// The kind of a value with its article, for messages: "an integer", "a string".
-pub fn a_kind(value: &RonValue) -> String {
-    let kind = value.kind_name();
-    let article = if kind.starts_with(['a', 'e', 'i', 'o', 'u']) {
-        "an"
-    } else {
-        "a"
-    };
-    format!("{article} {kind}")
 }

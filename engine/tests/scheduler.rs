@@ -1,6 +1,8 @@
 //! Scheduler semantics, checked by counting operator calls: demand, sharing, caching, mapping,
 //! failure isolation, thread-count independence.
 
+#![allow(clippy::unwrap_used, clippy::expect_used)] // test code: a failed unwrap is a failed test
+
 mod common;
 
 use common::{load, registry, temp_dir};

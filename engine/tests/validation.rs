@@ -1,5 +1,7 @@
 //! Validation reports every problem at once, each at the right `file:line:col`.
 
+#![allow(clippy::unwrap_used, clippy::expect_used)] // test code: a failed unwrap is a failed test
+
 mod common;
 
 use common::{errors, load, registry};
