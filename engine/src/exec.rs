@@ -483,6 +483,9 @@ fn execute(
     state
         .peak_bytes
         .store(state.live_bytes.load(Ordering::Relaxed), Ordering::Relaxed);
+    if let Some(progress) = progress {
+        progress(0, state.total);
+    }
 
     rayon::scope(|scope| {
         for i in 0..n {
