@@ -957,15 +957,7 @@ impl Resolver<'_> {
                     None => {
                         let names: Vec<&str> = names.iter().map(String::as_str).collect();
                         let msg = format!("subgraph node `{target}` has no output `{port}`");
-                        self.diags.push(unknown_name_diag(
-                            Code::UnknownOutput,
-                            source,
-                            &port_name,
-                            &msg,
-                            "no such output",
-                            &names,
-                            "outputs",
-                        ));
+                        self.unknown_output(source, &port_name, &msg, &names);
                         None
                     }
                 };
@@ -983,18 +975,29 @@ impl Resolver<'_> {
             None => {
                 let names: Vec<&str> = info.outputs.iter().map(|p| p.name.as_str()).collect();
                 let msg = format!("node `{target}` ({}) has no output `{port}`", info.id);
-                self.diags.push(unknown_name_diag(
-                    Code::UnknownOutput,
-                    source,
-                    &port_name,
-                    &msg,
-                    "no such output",
-                    &names,
-                    "outputs",
-                ));
+                self.unknown_output(source, &port_name, &msg, &names);
                 None
             }
         }
+    }
+
+    fn unknown_output(
+        &mut self,
+        source: &Arc<SourceFile>,
+        port: &Spanned<String>,
+        message: &str,
+        names: &[&str],
+    ) {
+        let d = unknown_name_diag(
+            Code::UnknownOutput,
+            source,
+            port,
+            message,
+            "no such output",
+            names,
+            "outputs",
+        );
+        self.diags.push(d);
     }
 
     /// Checks a node's parameters (file values, then `--set` overrides) against a schema.
