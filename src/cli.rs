@@ -26,6 +26,13 @@ pub struct Cli {
     /// More log output (-v info, -vv debug); `OCELLUS_LOG` overrides.
     #[arg(short, long, action = clap::ArgAction::Count, global = true)]
     pub verbose: u8,
+    /// Load operators from this plugin library (repeatable). `OCELLUS_PLUGIN_PATH` (files or
+    /// folders, `:`-separated) and a graph's `plugins: [...]` are loaded too.
+    #[arg(long = "plugin", value_name = "PATH", global = true)]
+    pub plugin: Vec<PathBuf>,
+    /// Load no plugin at all: neither `--plugin`, `OCELLUS_PLUGIN_PATH` nor a graph's `plugins`.
+    #[arg(long = "no-plugins", global = true, conflicts_with = "plugin")]
+    pub no_plugins: bool,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -97,23 +104,68 @@ pub struct RunArgs {
 
 /// Runs a parsed command line.
 pub fn dispatch(cli: Cli) -> ExitCode {
-    let registry = match builtin_registry() {
+    let mut registry = match builtin_registry() {
         Ok(r) => r,
         Err(code) => return code,
     };
+    let plugins = Plugins {
+        enabled: !cli.no_plugins,
+    };
+    if let Err(code) = load_plugins(&mut registry, &cli.plugin, plugins) {
+        return code;
+    }
+    let registry = &mut registry;
     match cli.command {
-        Command::Run(args) => run(&registry, &args),
-        Command::Check { graph, set } => check(&registry, &graph, &set),
-        Command::Ops { op, json } => crate::ops::ops(&registry, op.as_deref(), json),
-        Command::Dot { graph } => match load(&registry, &graph, &[]) {
+        Command::Run(args) => run(registry, &args, plugins),
+        Command::Check { graph, set } => check(registry, &graph, &set, plugins),
+        Command::Ops { op, json } => crate::ops::ops(registry, op.as_deref(), json),
+        Command::Dot { graph } => match load(registry, &graph, &[], plugins) {
             Ok(g) => {
                 print!("{}", g.to_dot());
                 ExitCode::SUCCESS
             }
             Err(code) => code,
         },
-        Command::Snapshot { graph, threads } => snapshot(&registry, &graph, threads),
+        Command::Snapshot { graph, threads } => snapshot(registry, &graph, threads, plugins),
     }
+}
+
+/// Whether plugins may be loaded (`--no-plugins` turns them off).
+#[derive(Debug, Clone, Copy)]
+struct Plugins {
+    enabled: bool,
+}
+
+/// Environment variable naming plugin files or folders, `:`-separated.
+const PLUGIN_PATH_ENV: &str = "OCELLUS_PLUGIN_PATH";
+
+/// Loads `--plugin` files, then those of `OCELLUS_PLUGIN_PATH`; a failure is exit 2.
+fn load_plugins(
+    registry: &mut Registry,
+    cli: &[PathBuf],
+    plugins: Plugins,
+) -> Result<(), ExitCode> {
+    if !plugins.enabled {
+        return Ok(());
+    }
+    let mut files = cli.to_vec();
+    if let Some(list) = std::env::var_os(PLUGIN_PATH_ENV) {
+        let list = list.to_string_lossy();
+        match ocellus_engine::plugin::plugin_path_files(&list) {
+            Ok(found) => files.extend(found),
+            Err(message) => {
+                eprintln!("error: {PLUGIN_PATH_ENV}: {message}");
+                return Err(ExitCode::from(EXIT_INVALID));
+            }
+        }
+    }
+    for file in files {
+        if let Err(e) = ocellus_engine::load_plugin(&file, registry) {
+            eprintln!("error: {e}");
+            return Err(ExitCode::from(EXIT_INVALID));
+        }
+    }
+    Ok(())
 }
 
 fn builtin_registry() -> Result<Registry, ExitCode> {
@@ -124,7 +176,12 @@ fn builtin_registry() -> Result<Registry, ExitCode> {
 }
 
 /// Parses overrides and loads a graph, printing diagnostics on failure.
-fn load(registry: &Registry, path: &Path, set: &[String]) -> Result<Graph, ExitCode> {
+fn load(
+    registry: &mut Registry,
+    path: &Path,
+    set: &[String],
+    plugins: Plugins,
+) -> Result<Graph, ExitCode> {
     let mut diags = Diagnostics::default();
     let mut overrides = Vec::new();
     for arg in set {
@@ -133,7 +190,8 @@ fn load(registry: &Registry, path: &Path, set: &[String]) -> Result<Graph, ExitC
             Err(d) => diags.push(*d),
         }
     }
-    let result = ocellus_engine::load_graph(registry, path, &overrides);
+    let result =
+        ocellus_engine::load_graph_with_plugins(registry, path, &overrides, plugins.enabled);
     match result {
         Ok(graph) if diags.is_empty() => Ok(graph),
         Ok(_) => {
@@ -148,8 +206,8 @@ fn load(registry: &Registry, path: &Path, set: &[String]) -> Result<Graph, ExitC
     }
 }
 
-fn check(registry: &Registry, path: &Path, set: &[String]) -> ExitCode {
-    match load(registry, path, set) {
+fn check(registry: &mut Registry, path: &Path, set: &[String], plugins: Plugins) -> ExitCode {
+    match load(registry, path, set, plugins) {
         Ok(graph) => {
             println!(
                 "{}: ok — graph `{}`, {} nodes, {} outputs",
@@ -164,8 +222,8 @@ fn check(registry: &Registry, path: &Path, set: &[String]) -> ExitCode {
     }
 }
 
-fn snapshot(registry: &Registry, path: &Path, threads: usize) -> ExitCode {
-    let graph = match load(registry, path, &[]) {
+fn snapshot(registry: &mut Registry, path: &Path, threads: usize, plugins: Plugins) -> ExitCode {
+    let graph = match load(registry, path, &[], plugins) {
         Ok(g) => g,
         Err(code) => return code,
     };
@@ -202,8 +260,8 @@ fn report_failures(report: &RunReport) -> ExitCode {
     }
 }
 
-fn run(registry: &Registry, args: &RunArgs) -> ExitCode {
-    let graph = match load(registry, &args.graph, &args.set) {
+fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
+    let graph = match load(registry, &args.graph, &args.set, plugins) {
         Ok(g) => g,
         Err(code) => return code,
     };

@@ -99,6 +99,8 @@ pub enum Code {
     UnknownGraphOutput,
     /// A malformed `--set`.
     BadOverride,
+    /// A plugin listed in the graph could not be loaded, or plugins are disabled.
+    Plugin,
 }
 
 impl Code {
@@ -126,6 +128,7 @@ impl Code {
             Code::Subgraph => "ocellus::subgraph",
             Code::UnknownGraphOutput => "ocellus::unknown_output_name",
             Code::BadOverride => "ocellus::bad_override",
+            Code::Plugin => "ocellus::plugin",
         }
     }
 }

@@ -18,6 +18,7 @@ pub mod graph;
 pub mod image_io;
 pub mod op;
 pub mod params;
+pub mod plugin;
 pub mod resolve;
 pub mod ron_syntax;
 pub mod spec;
@@ -33,6 +34,7 @@ pub use op::{
     Inputs, Op, OpError, OpFactory, OpInfo, Operator, Outputs, PortSpec, Registry, RunContext,
 };
 pub use params::{NoParams, ParamKind, ParamMap, ParamSpec, ParamType, ParamValue, Params};
-pub use resolve::{Override, load_graph};
+pub use plugin::{PluginError, PluginInfo, load_plugin};
+pub use resolve::{Override, load_graph, load_graph_with_plugins};
 pub use types::PortType;
 pub use value::{Channels, Depth, Image, PixelData, PixelFormat, Value};

@@ -217,6 +217,53 @@ pub fn load_graph(
     load_source(registry, &source, overrides)
 }
 
+/// Like [`load_graph`], but first loads the plugins the graph lists in `plugins: [...]` (paths
+/// relative to the graph file) into `registry`. With `allow_plugins` false, a graph that lists
+/// plugins is refused. A plugin that fails to load is a diagnostic at its string in the file.
+/// Only the top-level file's `plugins` are loaded; subgraphs use what is registered.
+pub fn load_graph_with_plugins(
+    registry: &mut Registry,
+    path: &Path,
+    overrides: &[Override],
+    allow_plugins: bool,
+) -> Result<Graph, Diagnostics> {
+    let name = path.to_string_lossy().into_owned();
+    let source = read_source(path, &name).map_err(|d| Diagnostics(vec![*d]))?;
+    let mut scratch = Diagnostics::default();
+    if let Some(spec) = parse_spec(&source, &mut scratch) {
+        let mut diags = Diagnostics::default();
+        for plugin in &spec.plugins {
+            if !allow_plugins {
+                diags.push(
+                    Diagnostic::at(
+                        Code::Plugin,
+                        &source,
+                        plugin.span,
+                        format!(
+                            "the graph needs plugin `{}`, but plugins are disabled",
+                            plugin.value
+                        ),
+                    )
+                    .label("plugin listed here")
+                    .help("run without `--no-plugins` to load it"),
+                );
+                continue;
+            }
+            let file = source.base_dir().join(&plugin.value);
+            if let Err(e) = crate::plugin::load_plugin(&file, registry) {
+                diags.push(
+                    Diagnostic::at(Code::Plugin, &source, plugin.span, e.to_string())
+                        .label("this plugin could not be loaded"),
+                );
+            }
+        }
+        if !diags.is_empty() {
+            return Err(diags);
+        }
+    }
+    load_source(registry, &source, overrides)
+}
+
 /// Checks and resolves a graph from an already-read source.
 pub fn load_source(
     registry: &Registry,

@@ -38,6 +38,8 @@ pub struct GraphSpec {
     pub nodes: Vec<NodeSpec>,
     /// Outputs: name and `node.port` reference.
     pub outputs: Vec<(Name, Name)>,
+    /// Plugin libraries to load before resolving operators, relative to the file's folder.
+    pub plugins: Vec<Name>,
     /// Span of the whole document.
     pub span: Span,
 }
@@ -59,7 +61,14 @@ pub struct NodeSpec {
     pub span: Span,
 }
 
-const GRAPH_FIELDS: [&str; 5] = ["name", "description", "inputs", "nodes", "outputs"];
+const GRAPH_FIELDS: [&str; 6] = [
+    "name",
+    "description",
+    "inputs",
+    "nodes",
+    "outputs",
+    "plugins",
+];
 const NODE_FIELDS: [&str; 3] = ["op", "inputs", "params"];
 
 /// Reads a parsed document as a graph, reporting every shape problem.
@@ -76,6 +85,7 @@ pub fn graph_from_ron(
         inputs: Vec::new(),
         nodes: Vec::new(),
         outputs: Vec::new(),
+        plugins: Vec::new(),
         span: doc.span,
     };
     let mut saw_nodes = false;
@@ -85,6 +95,7 @@ pub fn graph_from_ron(
             "description" => spec.description = string(source, value, "`description`", diags),
             "inputs" => spec.inputs = string_map(source, value, "`inputs`", diags),
             "outputs" => spec.outputs = string_map(source, value, "`outputs`", diags),
+            "plugins" => spec.plugins = string_list(source, value, "`plugins`", diags),
             "nodes" => {
                 saw_nodes = true;
                 spec.nodes = nodes(source, value, diags);
@@ -222,6 +233,36 @@ fn ident_hint(v: &RonValue) -> Option<String> {
 }
 
 /// A `{ "key": "value" }` map of strings; duplicate keys are errors.
+fn string_list(
+    source: &Arc<SourceFile>,
+    v: &Spanned<RonValue>,
+    what: &str,
+    diags: &mut Diagnostics,
+) -> Vec<Name> {
+    match &v.value {
+        RonValue::List(items) => items
+            .iter()
+            .filter_map(|item| string(source, item, &format!("an entry of {what}"), diags))
+            .collect(),
+        RonValue::Unit => Vec::new(),
+        other => {
+            diags.push(
+                Diagnostic::at(
+                    Code::Shape,
+                    source,
+                    head_span(v),
+                    format!(
+                        "{what} must be a list `[\"path\", ...]`, found {}",
+                        a_kind(other)
+                    ),
+                )
+                .label("expected a list"),
+            );
+            Vec::new()
+        }
+    }
+}
+
 fn string_map(
     source: &Arc<SourceFile>,
     v: &Spanned<RonValue>,
