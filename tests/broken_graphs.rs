@@ -197,6 +197,11 @@ const CORPUS: &[(&str, &str, &[&str])] = &[
         "3:49",
         &["`spokes` applies only to kind \"siemens_star\""],
     ),
+    (
+        "43_subgraph_lists_plugin.ron",
+        "sub/with_plugin.ron:2:15",
+        &["lists plugin `libsomething.so`", "top-level graph"],
+    ),
 ];
 
 #[test]

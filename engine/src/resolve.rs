@@ -220,7 +220,7 @@ pub fn load_graph(
 /// Like [`load_graph`], but first loads the plugins the graph lists in `plugins: [...]` (paths
 /// relative to the graph file) into `registry`. With `allow_plugins` false, a graph that lists
 /// plugins is refused. A plugin that fails to load is a diagnostic at its string in the file.
-/// Only the top-level file's `plugins` are loaded; subgraphs use what is registered.
+/// Only the top-level file may list plugins; a subgraph that lists any is an error.
 pub fn load_graph_with_plugins(
     registry: &mut Registry,
     path: &Path,
@@ -804,6 +804,20 @@ impl Resolver<'_> {
         let Some(sub_spec) = parse_spec(&sub_source, &mut self.diags) else {
             return Slot::Failed;
         };
+        // Plugins are loaded once, before validation, from the top-level graph only: a subgraph
+        // that names its own would otherwise be silently ignored.
+        for plugin in &sub_spec.plugins {
+            self.diags.push(
+                Diagnostic::at(
+                    Code::Plugin,
+                    &sub_source,
+                    plugin.span,
+                    format!("subgraph `{}` lists plugin `{}`", path.display(), plugin.value),
+                )
+                .label("plugins are loaded by the top-level graph")
+                .help("move this entry to the `plugins` list of the top-level graph, or pass it with `--plugin`"),
+            );
+        }
 
         // Bind the subgraph's declared inputs.
         let mut bound: HashMap<String, Source> = HashMap::new();
