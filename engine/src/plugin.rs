@@ -35,7 +35,7 @@ use crate::op::{
 };
 use crate::params::{ParamMap, ParamSpec, ParamType, ParamValue};
 use crate::types::PortType;
-use crate::value::{Channels, Image, Matrix, Metrics, PixelData, Value};
+use crate::value::{Channels, Image, Match, Matrix, Metrics, PixelData, Value};
 
 /// Longest string read from a descriptor (a guard against garbage, not a format limit).
 const MAX_DESCRIPTOR_STRING: usize = 1 << 20;
@@ -553,6 +553,8 @@ fn image_view(image: &Image) -> abi::ImageView {
 impl Operator for PluginOperator {
     fn run(&self, ctx: &RunContext, inputs: &crate::op::Inputs<'_>) -> Result<Outputs, OpError> {
         let mut metric_names: Vec<Vec<abi::MetricView>> = Vec::new();
+        // Matches are handed over as f64 rows; the converted arrays live until the call returns.
+        let mut match_rows: Vec<Vec<f64>> = Vec::new();
         let mut views = Vec::with_capacity(self.inputs.len());
         for spec in &self.inputs {
             let mut view = ValueView::NONE;
@@ -577,6 +579,26 @@ impl Operator for PluginOperator {
                             rows: p.len(),
                             cols: 2,
                         };
+                    }
+                    Value::Matches(m) => {
+                        let flat: Vec<f64> = m
+                            .iter()
+                            .flat_map(|x| {
+                                [
+                                    f64::from(x.query),
+                                    f64::from(x.train),
+                                    f64::from(x.distance),
+                                ]
+                            })
+                            .collect();
+                        view.tag = abi::TYPE_MATCHES;
+                        view.array = abi::ArrayView {
+                            data: flat.as_ptr(),
+                            rows: m.len(),
+                            cols: 3,
+                        };
+                        // The heap buffer does not move when the vector does.
+                        match_rows.push(flat);
                     }
                     Value::Scalar(x) => {
                         view.tag = abi::TYPE_SCALAR;
@@ -633,7 +655,7 @@ impl Operator for PluginOperator {
         let mut outputs = vec![OutValue::NONE; self.outputs.len()];
         let mut err = Buffer::NULL;
         // SAFETY: every pointer in `views` and `context` borrows values that outlive the call
-        // (`inputs`, `metric_names`, `ctx`); `outputs` and `err` are ours; the instance is alive
+        // (`inputs`, `metric_names`, `match_rows`, `ctx`); `outputs` and `err` are ours; the instance is alive
         // (we hold it) and may be used concurrently; the plugin catches its own panics.
         let status = unsafe {
             (self.run)(
@@ -647,6 +669,7 @@ impl Operator for PluginOperator {
             )
         };
         drop(metric_names);
+        drop(match_rows);
         let message = take_message(err);
         // Whatever the status, the host owns (and must free) what the plugin wrote.
         let mut converted = Vec::with_capacity(outputs.len());
@@ -748,6 +771,28 @@ fn to_value(spec: &PortSpec, out: &OutValue) -> Result<Option<Value>, String> {
             Value::Points2D(Arc::new(
                 flat.chunks_exact(2).map(|p| [p[0], p[1]]).collect(),
             ))
+        }
+        abi::TYPE_MATCHES => {
+            let n = out.rows.checked_mul(3).ok_or("too many matches")?;
+            let flat: Vec<f64> = read_buffer(&out.buffer, n)?;
+            let index = |x: f64| -> Result<u32, String> {
+                if x.fract() == 0.0 && (0.0..=f64::from(u32::MAX)).contains(&x) {
+                    Ok(x as u32)
+                } else {
+                    Err(format!("match index {x} is not a whole number below 2^32"))
+                }
+            };
+            let matches = flat
+                .chunks_exact(3)
+                .map(|r| {
+                    Ok(Match {
+                        query: index(r[0])?,
+                        train: index(r[1])?,
+                        distance: r[2] as f32,
+                    })
+                })
+                .collect::<Result<Vec<_>, String>>()?;
+            Value::Matches(Arc::new(matches))
         }
         abi::TYPE_SCALAR => Value::Scalar(out.scalar),
         abi::TYPE_INTEGER => Value::Integer(out.integer),
@@ -945,6 +990,7 @@ mod tests {
             Port::new("metrics", P::Metrics, ""),
             Port::new("count", P::Integer, "").optional(),
             Port::new("flag", P::Bool, ""),
+            Port::new("matches", P::Matches, ""),
         ];
         const OUTPUTS: &'static [Port] = &[
             Port::new("image", P::Image, ""),
@@ -955,6 +1001,7 @@ mod tests {
             Port::new("count", P::Integer, ""),
             Port::new("flag", P::Bool, ""),
             Port::new("sum", P::Scalar, ""),
+            Port::new("matches", P::Matches, ""),
         ];
         const PARAMS: &'static [Param] = &[Param::float("offset", 0.5, "").min(0.0).unit("px")];
 
@@ -986,6 +1033,12 @@ mod tests {
             } else {
                 -1
             };
+            // Swap query and train, halve the distance.
+            let matches = inputs
+                .matches("matches")?
+                .chunks_exact(3)
+                .map(|m| (m[1] as u32, m[0] as u32, (m[2] / 2.0) as f32))
+                .collect();
             let sum = std::sync::Mutex::new(0usize);
             ctx.parallel_for(10, |i| *sum.lock().unwrap() += i);
             let sum = *sum.lock().unwrap();
@@ -1012,7 +1065,8 @@ mod tests {
                 .metrics("metrics", metrics)
                 .integer("count", count)
                 .bool("flag", !inputs.bool("flag")?)
-                .scalar("sum", sum as f64))
+                .scalar("sum", sum as f64)
+                .with("matches", OutputValue::Matches(matches)))
         }
     }
 
@@ -1077,6 +1131,18 @@ mod tests {
             Some(Value::metrics(metrics)),
             None,
             Some(Value::Bool(true)),
+            Some(Value::Matches(Arc::new(vec![
+                Match {
+                    query: 0,
+                    train: 7,
+                    distance: 3.0,
+                },
+                Match {
+                    query: 4_000_000_000,
+                    train: 1,
+                    distance: 0.5,
+                },
+            ]))),
         ];
         let ctx = RunContext {
             node: "n1".into(),
@@ -1102,6 +1168,21 @@ mod tests {
             Some(Value::Points2D(Arc::new(vec![[1.5, 2.0], [3.5, 4.0]])))
         );
         assert_eq!(out.take("text"), Some(Value::Text("hi|n1".into())));
+        assert_eq!(
+            out.take("matches"),
+            Some(Value::Matches(Arc::new(vec![
+                Match {
+                    query: 7,
+                    train: 0,
+                    distance: 1.5
+                },
+                Match {
+                    query: 1,
+                    train: 4_000_000_000,
+                    distance: 0.25
+                },
+            ])))
+        );
         let expected: Metrics = [("a!".to_string(), 3.0)].into_iter().collect();
         assert_eq!(out.take("metrics"), Some(Value::metrics(expected)));
         assert_eq!(out.take("count"), Some(Value::Integer(-1)));

@@ -162,10 +162,13 @@ pub const TYPE_BOOL: u32 = 6;
 pub const TYPE_TEXT: u32 = 7;
 /// `Metrics`.
 pub const TYPE_METRICS: u32 = 8;
+/// `Matches`: `rows` correspondences as a `rows × 3` f64 array of (query index, train index,
+/// distance); indices are whole numbers below 2³².
+pub const TYPE_MATCHES: u32 = 9;
 
 /// Port type names ABI v1 can carry, with their codes. A plugin port of any other type is
 /// refused when the plugin is loaded.
-pub const PORT_TYPES: [(&str, u32); 8] = [
+pub const PORT_TYPES: [(&str, u32); 9] = [
     ("Image", TYPE_IMAGE),
     ("Matrix", TYPE_MATRIX),
     ("Points2D", TYPE_POINTS2D),
@@ -174,6 +177,7 @@ pub const PORT_TYPES: [(&str, u32); 8] = [
     ("Bool", TYPE_BOOL),
     ("Text", TYPE_TEXT),
     ("Metrics", TYPE_METRICS),
+    ("Matches", TYPE_MATCHES),
 ];
 
 /// The code of a port type name, if ABI v1 carries it.
@@ -234,7 +238,8 @@ pub struct ImageView {
     pub format: u32,
 }
 
-/// A borrowed row-major `rows × cols` array of f64 (a matrix; points are `n × 2`).
+/// A borrowed row-major `rows × cols` array of f64 (a matrix; points are `n × 2`; matches are
+/// `n × 3` rows of query index, train index, distance).
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
 pub struct ArrayView {
@@ -265,7 +270,7 @@ pub struct ValueView {
     pub tag: u32,
     /// `TYPE_IMAGE`.
     pub image: ImageView,
-    /// `TYPE_MATRIX`, `TYPE_POINTS2D` (`cols` 2).
+    /// `TYPE_MATRIX`, `TYPE_POINTS2D` (`cols` 2), `TYPE_MATCHES` (`cols` 3).
     pub array: ArrayView,
     /// `TYPE_TEXT`.
     pub text: Str,
@@ -321,7 +326,8 @@ pub struct OutMetric {
 ///
 /// - image: `buffer` holds `height × width × channels` samples without padding, aligned to the
 ///   sample size; `width`, `height`, `format`.
-/// - matrix: `rows × cols` f64 in `buffer`; points: `rows` points, `cols` 2.
+/// - matrix: `rows × cols` f64 in `buffer`; points: `rows` points, `cols` 2; matches: `rows`
+///   matches, `cols` 3.
 /// - text: UTF-8 bytes in `buffer`.
 /// - metrics: `rows` [`OutMetric`] entries in `buffer`.
 #[repr(C)]

@@ -470,6 +470,16 @@ fn to_out(port: &crate::Port, value: OutputValue) -> Result<abi::OutValue, Strin
             let flat: Vec<f64> = points.iter().flatten().copied().collect();
             out.buffer = host_buffer(&flat).ok_or_else(|| no_memory(port))?;
         }
+        (P::Matches, OutputValue::Matches(matches)) => {
+            out.tag = abi::TYPE_MATCHES;
+            out.rows = matches.len();
+            out.cols = 3;
+            let flat: Vec<f64> = matches
+                .iter()
+                .flat_map(|&(q, t, d)| [f64::from(q), f64::from(t), f64::from(d)])
+                .collect();
+            out.buffer = host_buffer(&flat).ok_or_else(|| no_memory(port))?;
+        }
         (P::Scalar, OutputValue::Scalar(x)) => {
             out.tag = abi::TYPE_SCALAR;
             out.scalar = x;
@@ -517,6 +527,7 @@ fn to_out(port: &crate::Port, value: OutputValue) -> Result<abi::OutValue, Strin
                 OutputValue::Image { .. } => "an Image",
                 OutputValue::Matrix { .. } => "a Matrix",
                 OutputValue::Points2D(_) => "Points2D",
+                OutputValue::Matches(_) => "Matches",
                 OutputValue::Scalar(_) => "a Scalar",
                 OutputValue::Integer(_) => "an Integer",
                 OutputValue::Bool(_) => "a Bool",

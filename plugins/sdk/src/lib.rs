@@ -76,6 +76,8 @@ pub enum PortType {
     Text,
     /// Named numbers.
     Metrics,
+    /// Feature correspondences.
+    Matches,
 }
 
 impl PortType {
@@ -90,6 +92,7 @@ impl PortType {
             PortType::Bool => "Bool",
             PortType::Text => "Text",
             PortType::Metrics => "Metrics",
+            PortType::Matches => "Matches",
         }
     }
 }
@@ -496,6 +499,12 @@ impl<'a> InputViews<'a> {
         self.array(name, abi::TYPE_MATRIX)
     }
 
+    /// The matches on `name`, as `[query0, train0, distance0, query1, …]` (indices are whole
+    /// numbers stored as f64).
+    pub fn matches(&self, name: &str) -> Result<&'a [f64], String> {
+        Ok(self.array(name, abi::TYPE_MATCHES)?.2)
+    }
+
     /// The points on `name`, as `[x0, y0, x1, y1, …]`.
     pub fn points2d(&self, name: &str) -> Result<&'a [f64], String> {
         Ok(self.array(name, abi::TYPE_POINTS2D)?.2)
@@ -583,6 +592,8 @@ pub enum OutputValue {
     },
     /// 2-D points.
     Points2D(Vec<[f64; 2]>),
+    /// Correspondences: (query index, train index, distance).
+    Matches(Vec<(u32, u32, f32)>),
     /// A number.
     Scalar(f64),
     /// An integer.
