@@ -41,6 +41,7 @@
 #![deny(clippy::unwrap_used, clippy::expect_used)]
 
 use std::f32::consts::PI;
+use std::sync::Mutex;
 
 /// Parameters of [`anisotropic_kuwahara`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -141,6 +142,35 @@ pub fn anisotropic_kuwahara(
     channels: usize,
     p: &KuwaharaParams,
 ) -> Result<Vec<f32>, String> {
+    anisotropic_kuwahara_with(src, width, height, channels, p, &|n, body| {
+        (0..n).for_each(body);
+    })
+}
+
+/// Rows filtered by one task of [`anisotropic_kuwahara_with`].
+pub const BAND_ROWS: usize = 16;
+
+/// The body of one task: `body(i)` filters band `i`.
+pub type BandBody<'a> = dyn Fn(usize) + Sync + 'a;
+
+/// Runs `body(i)` for every `i < n`, in any order or concurrently.
+pub type ParallelFor<'a> = dyn Fn(usize, &BandBody<'_>) + 'a;
+
+/// [`anisotropic_kuwahara`] with the rows split into bands of [`BAND_ROWS`], run by
+/// `parallel_for(n, body)`, which must call `body(i)` once for every `i < n`, in any order or
+/// concurrently (e.g. the host's thread pool). Bands are independent and joined in order, so
+/// the result does not depend on how they were scheduled.
+///
+/// # Errors
+/// As [`anisotropic_kuwahara`], and if `parallel_for` skipped a band.
+pub fn anisotropic_kuwahara_with(
+    src: &[f32],
+    width: usize,
+    height: usize,
+    channels: usize,
+    p: &KuwaharaParams,
+    parallel_for: &ParallelFor<'_>,
+) -> Result<Vec<f32>, String> {
     p.validate()?;
     if !(1..=MAX_CHANNELS).contains(&channels) {
         return Err(format!("channels must be in 1..=4, got {channels}"));
@@ -185,145 +215,165 @@ pub fn anisotropic_kuwahara(
     let paired = n.is_multiple_of(2);
     let rot_count = if paired { n / 2 } else { n };
 
-    let mut out = vec![0.0f32; len];
     let xmax = (width - 1) as isize;
     let ymax = (height - 1) as isize;
     let amax = p.radius * MAX_AXIS_FACTOR;
 
-    for y in 0..height {
-        for x in 0..width {
-            let idx = y * width + x;
-            let t = tensor.get(idx).copied().unwrap_or([0.0; 3]);
-            let (phi, aniso) = tensor_orientation(t);
-            let a = (p.radius * (p.alpha + aniso) / p.alpha).clamp(0.5, amax);
-            let b = (p.radius * p.alpha / (p.alpha + aniso)).clamp(0.5, amax);
-            let (sphi, cphi) = phi.sin_cos();
-            // Half extents of the bounding box of the rotated ellipse.
-            let ex = ((a * cphi).powi(2) + (b * sphi).powi(2)).sqrt();
-            let ey = ((a * sphi).powi(2) + (b * cphi).powi(2)).sqrt();
-            let rx = ex.floor() as isize;
-            let ry = ey.floor() as isize;
-            let (ia, ib) = (1.0 / a, 1.0 / b);
-            let qa = cphi * cphi * ia * ia + sphi * sphi * ib * ib;
+    let bands = height.div_ceil(BAND_ROWS);
+    let band_outputs: Vec<Mutex<Vec<f32>>> = (0..bands).map(|_| Mutex::new(Vec::new())).collect();
+    let filter_band = |band: usize| {
+        let rows = band * BAND_ROWS..((band + 1) * BAND_ROWS).min(height);
+        let offset = rows.start * width * channels;
+        let mut out = vec![0.0f32; rows.len() * width * channels];
+        for y in rows {
+            for x in 0..width {
+                let idx = y * width + x;
+                let t = tensor.get(idx).copied().unwrap_or([0.0; 3]);
+                let (phi, aniso) = tensor_orientation(t);
+                let a = (p.radius * (p.alpha + aniso) / p.alpha).clamp(0.5, amax);
+                let b = (p.radius * p.alpha / (p.alpha + aniso)).clamp(0.5, amax);
+                let (sphi, cphi) = phi.sin_cos();
+                // Half extents of the bounding box of the rotated ellipse.
+                let ex = ((a * cphi).powi(2) + (b * sphi).powi(2)).sqrt();
+                let ey = ((a * sphi).powi(2) + (b * cphi).powi(2)).sqrt();
+                let rx = ex.floor() as isize;
+                let ry = ey.floor() as isize;
+                let (ia, ib) = (1.0 / a, 1.0 / b);
+                let qa = cphi * cphi * ia * ia + sphi * sphi * ib * ib;
 
-            let base = idx * channels;
-            let mut center = [0.0f32; MAX_CHANNELS];
-            if let Some(px) = src.get(base..base + channels) {
-                center[..channels].copy_from_slice(px);
-            }
-            let mut s0 = [0.0f32; MAX_SECTORS];
-            let mut s1 = [[0.0f32; MAX_CHANNELS]; MAX_SECTORS];
-            let mut s2 = [[0.0f32; MAX_CHANNELS]; MAX_SECTORS];
-
-            for dy in -ry..=ry {
-                let sy = (y as isize + dy).clamp(0, ymax) as usize;
-                let fdy = dy as f32;
-                // Columns of this row inside the ellipse: roots of a quadratic in dx.
-                let qb = 2.0 * fdy * cphi * sphi * (ia * ia - ib * ib);
-                let qc = fdy * fdy * (sphi * sphi * ia * ia + cphi * cphi * ib * ib) - 1.0;
-                let disc = qb * qb - 4.0 * qa * qc;
-                if disc < 0.0 {
-                    continue;
+                let base = idx * channels;
+                let mut center = [0.0f32; MAX_CHANNELS];
+                if let Some(px) = src.get(base..base + channels) {
+                    center[..channels].copy_from_slice(px);
                 }
-                let sq = disc.sqrt();
-                let lo = ((-qb - sq) / (2.0 * qa)).ceil().max(-(rx as f32)) as isize;
-                let hi = ((-qb + sq) / (2.0 * qa)).floor().min(rx as f32) as isize;
-                for dx in lo..=hi {
-                    let fdx = dx as f32;
-                    let vx = (fdx * cphi + fdy * sphi) * ia;
-                    let vy = (-fdx * sphi + fdy * cphi) * ib;
-                    let r2 = vx * vx + vy * vy;
-                    if r2 > 1.0 {
+                let mut s0 = [0.0f32; MAX_SECTORS];
+                let mut s1 = [[0.0f32; MAX_CHANNELS]; MAX_SECTORS];
+                let mut s2 = [[0.0f32; MAX_CHANNELS]; MAX_SECTORS];
+
+                for dy in -ry..=ry {
+                    let sy = (y as isize + dy).clamp(0, ymax) as usize;
+                    let fdy = dy as f32;
+                    // Columns of this row inside the ellipse: roots of a quadratic in dx.
+                    let qb = 2.0 * fdy * cphi * sphi * (ia * ia - ib * ib);
+                    let qc = fdy * fdy * (sphi * sphi * ia * ia + cphi * cphi * ib * ib) - 1.0;
+                    let disc = qb * qb - 4.0 * qa * qc;
+                    if disc < 0.0 {
                         continue;
                     }
-                    let g = (-2.0 * r2).exp();
-                    let sx = (x as isize + dx).clamp(0, xmax) as usize;
-                    let sb = (sy * width + sx) * channels;
-                    let Some(px) = src.get(sb..sb + channels) else {
-                        continue;
-                    };
-                    let mut val = [0.0f32; MAX_CHANNELS];
-                    for c in 0..channels {
-                        val[c] = px[c] - center[c];
-                    }
-                    let mut accumulate = |i: usize, w: f32, val: &[f32; MAX_CHANNELS]| {
-                        if let (Some(a0), Some(a1), Some(a2)) =
-                            (s0.get_mut(i), s1.get_mut(i), s2.get_mut(i))
-                        {
-                            *a0 += w;
-                            for c in 0..channels {
-                                let v = val[c];
-                                a1[c] += w * v;
-                                a2[c] += w * v * v;
+                    let sq = disc.sqrt();
+                    let lo = ((-qb - sq) / (2.0 * qa)).ceil().max(-(rx as f32)) as isize;
+                    let hi = ((-qb + sq) / (2.0 * qa)).floor().min(rx as f32) as isize;
+                    for dx in lo..=hi {
+                        let fdx = dx as f32;
+                        let vx = (fdx * cphi + fdy * sphi) * ia;
+                        let vy = (-fdx * sphi + fdy * cphi) * ib;
+                        let r2 = vx * vx + vy * vy;
+                        if r2 > 1.0 {
+                            continue;
+                        }
+                        let g = (-2.0 * r2).exp();
+                        let sx = (x as isize + dx).clamp(0, xmax) as usize;
+                        let sb = (sy * width + sx) * channels;
+                        let Some(px) = src.get(sb..sb + channels) else {
+                            continue;
+                        };
+                        let mut val = [0.0f32; MAX_CHANNELS];
+                        for c in 0..channels {
+                            val[c] = px[c] - center[c];
+                        }
+                        let mut accumulate = |i: usize, w: f32, val: &[f32; MAX_CHANNELS]| {
+                            if let (Some(a0), Some(a1), Some(a2)) =
+                                (s0.get_mut(i), s1.get_mut(i), s2.get_mut(i))
+                            {
+                                *a0 += w;
+                                for c in 0..channels {
+                                    let v = val[c];
+                                    a1[c] += w * v;
+                                    a2[c] += w * v * v;
+                                }
                             }
-                        }
-                    };
-                    // Sector i + N/2 is sector i mirrored through the centre, so for
-                    // even N one rotation serves two sectors.
-                    for i in 0..rot_count {
-                        let xp = vx * sec_cos[i] + vy * sec_sin[i];
-                        let yp = -vx * sec_sin[i] + vy * sec_cos[i];
-                        let base = ZETA - eta * yp * yp;
-                        let t1 = base + xp;
-                        if t1 > 0.0 {
-                            accumulate(i, t1 * t1 * g, &val);
-                        }
-                        if paired {
-                            let t2 = base - xp;
-                            if t2 > 0.0 {
-                                accumulate(i + rot_count, t2 * t2 * g, &val);
+                        };
+                        // Sector i + N/2 is sector i mirrored through the centre, so for
+                        // even N one rotation serves two sectors.
+                        for i in 0..rot_count {
+                            let xp = vx * sec_cos[i] + vy * sec_sin[i];
+                            let yp = -vx * sec_sin[i] + vy * sec_cos[i];
+                            let base = ZETA - eta * yp * yp;
+                            let t1 = base + xp;
+                            if t1 > 0.0 {
+                                accumulate(i, t1 * t1 * g, &val);
+                            }
+                            if paired {
+                                let t2 = base - xp;
+                                if t2 > 0.0 {
+                                    accumulate(i + rot_count, t2 * t2 * g, &val);
+                                }
                             }
                         }
                     }
                 }
-            }
 
-            // Sector means and log-weights ln w_i = −ln(1 + (s_i·255)^q), normalised by
-            // the largest weight so that no weight underflows.
-            let mut means = [[0.0f64; MAX_CHANNELS]; MAX_SECTORS];
-            let mut logw = [f64::NEG_INFINITY; MAX_SECTORS];
-            let mut max_logw = f64::NEG_INFINITY;
-            for i in 0..n {
-                if s0[i] <= 0.0 {
-                    continue;
-                }
-                let inv = 1.0 / f64::from(s0[i]);
-                let mut var = 0.0f64;
-                for c in 0..channels {
-                    let m = f64::from(s1[i][c]) * inv;
-                    means[i][c] = m;
-                    var += (f64::from(s2[i][c]) * inv - m * m).max(0.0);
-                }
-                let z = if q == 0.0 {
-                    0.0
-                } else if var > 0.0 {
-                    q * (DEVIATION_SCALE.ln() + 0.5 * var.ln())
-                } else {
-                    f64::NEG_INFINITY
-                };
-                // −softplus(z) = −ln(1 + e^z)
-                let lw = if z > 40.0 { -z } else { -z.exp().ln_1p() };
-                logw[i] = lw;
-                max_logw = max_logw.max(lw);
-            }
-            let mut acc = [0.0f64; MAX_CHANNELS];
-            let mut wsum = 0.0f64;
-            for i in 0..n {
-                let w = (logw[i] - max_logw).exp();
-                if w.is_finite() && w > 0.0 {
-                    wsum += w;
+                // Sector means and log-weights ln w_i = −ln(1 + (s_i·255)^q), normalised by
+                // the largest weight so that no weight underflows.
+                let mut means = [[0.0f64; MAX_CHANNELS]; MAX_SECTORS];
+                let mut logw = [f64::NEG_INFINITY; MAX_SECTORS];
+                let mut max_logw = f64::NEG_INFINITY;
+                for i in 0..n {
+                    if s0[i] <= 0.0 {
+                        continue;
+                    }
+                    let inv = 1.0 / f64::from(s0[i]);
+                    let mut var = 0.0f64;
                     for c in 0..channels {
-                        acc[c] += w * means[i][c];
+                        let m = f64::from(s1[i][c]) * inv;
+                        means[i][c] = m;
+                        var += (f64::from(s2[i][c]) * inv - m * m).max(0.0);
+                    }
+                    let z = if q == 0.0 {
+                        0.0
+                    } else if var > 0.0 {
+                        q * (DEVIATION_SCALE.ln() + 0.5 * var.ln())
+                    } else {
+                        f64::NEG_INFINITY
+                    };
+                    // −softplus(z) = −ln(1 + e^z)
+                    let lw = if z > 40.0 { -z } else { -z.exp().ln_1p() };
+                    logw[i] = lw;
+                    max_logw = max_logw.max(lw);
+                }
+                let mut acc = [0.0f64; MAX_CHANNELS];
+                let mut wsum = 0.0f64;
+                for i in 0..n {
+                    let w = (logw[i] - max_logw).exp();
+                    if w.is_finite() && w > 0.0 {
+                        wsum += w;
+                        for c in 0..channels {
+                            acc[c] += w * means[i][c];
+                        }
                     }
                 }
-            }
-            if let Some(o) = out.get_mut(base..base + channels) {
-                for c in 0..channels {
-                    let delta = if wsum > 0.0 { acc[c] / wsum } else { 0.0 };
-                    o[c] = center[c] + delta as f32;
+                if let Some(o) = out.get_mut(base - offset..base - offset + channels) {
+                    for c in 0..channels {
+                        let delta = if wsum > 0.0 { acc[c] / wsum } else { 0.0 };
+                        o[c] = center[c] + delta as f32;
+                    }
                 }
             }
         }
+        if let Some(Ok(mut slot)) = band_outputs.get(band).map(Mutex::lock) {
+            *slot = out;
+        }
+    };
+    parallel_for(bands, &filter_band);
+    let mut out = Vec::with_capacity(len);
+    for slot in band_outputs {
+        out.extend(
+            slot.into_inner()
+                .map_err(|_| "a band of rows failed".to_string())?,
+        );
+    }
+    if out.len() != len {
+        return Err("a band of rows was not computed".to_string());
     }
     Ok(out)
 }
@@ -677,5 +727,43 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn banded_runs_do_not_depend_on_the_schedule() {
+        let (w, h, c) = (23, 41, 3); // bands of unequal size: 41 = 2·16 + 9
+        let mut seed = 0x9e37_79b9_u32;
+        let src: Vec<f32> = (0..w * h * c)
+            .map(|_| {
+                seed ^= seed << 13;
+                seed ^= seed >> 17;
+                seed ^= seed << 5;
+                (seed % 1000) as f32 / 999.0
+            })
+            .collect();
+        let p = KuwaharaParams {
+            radius: 3.0,
+            ..KuwaharaParams::default()
+        };
+        let sequential = anisotropic_kuwahara(&src, w, h, c, &p).unwrap();
+        let reversed = anisotropic_kuwahara_with(&src, w, h, c, &p, &|n, body| {
+            (0..n).rev().for_each(body);
+        })
+        .unwrap();
+        let threaded = anisotropic_kuwahara_with(&src, w, h, c, &p, &|n, body| {
+            std::thread::scope(|scope| {
+                for i in 0..n {
+                    scope.spawn(move || body(i));
+                }
+            });
+        })
+        .unwrap();
+        assert_eq!(sequential, reversed);
+        assert_eq!(sequential, threaded);
+        // A scheduler that skips a band is an error, not a partial image.
+        let skipping = anisotropic_kuwahara_with(&src, w, h, c, &p, &|n, body| {
+            (1..n).for_each(body);
+        });
+        assert!(skipping.is_err());
     }
 }

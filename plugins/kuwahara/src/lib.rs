@@ -12,7 +12,7 @@ use ocellus_plugin::{
     PortType, Samples,
 };
 
-use crate::algo::{KuwaharaParams, anisotropic_kuwahara};
+use crate::algo::{KuwaharaParams, anisotropic_kuwahara_with};
 
 /// `kuwahara.anisotropic`: the operator.
 pub struct Anisotropic {
@@ -90,7 +90,7 @@ impl PluginOp for Anisotropic {
         Ok(Anisotropic { params })
     }
 
-    fn run(&self, _ctx: &Context, inputs: &InputViews) -> Result<OutputValues, String> {
+    fn run(&self, ctx: &Context, inputs: &InputViews) -> Result<OutputValues, String> {
         let image = inputs.image("image")?;
         let (w, h, c) = (image.width, image.height, image.channels);
         let mut normalised = Vec::with_capacity(w * h * c);
@@ -115,7 +115,11 @@ impl PluginOp for Anisotropic {
                 }
             }
         }
-        let filtered = anisotropic_kuwahara(&normalised, w, h, c, &self.params)?;
+        // Bands of rows run on the host's thread pool; the result does not depend on the schedule.
+        let filtered =
+            anisotropic_kuwahara_with(&normalised, w, h, c, &self.params, &|n, body| {
+                ctx.parallel_for(n, body);
+            })?;
         let samples = match image.samples {
             Samples::U8(_) => OwnedSamples::U8(
                 filtered
