@@ -16,6 +16,9 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<capture::pattern::Pattern>()?;
     registry.register::<filter::grayscale::Grayscale>()?;
     registry.register::<filter::gaussian::Gaussian>()?;
+    registry.register::<filter::box_filter::BoxFilter>()?;
+    registry.register::<filter::sobel::Sobel>()?;
+    registry.register::<filter::sobel::Scharr>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<io::read_image::ReadImage>()?;

@@ -1,5 +1,7 @@
 //! Image filters: colour conversion, linear and non-linear filtering.
 
 pub mod border;
+pub mod box_filter;
 pub mod gaussian;
 pub mod grayscale;
+pub mod sobel;
