@@ -19,6 +19,9 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::box_filter::BoxFilter>()?;
     registry.register::<filter::sobel::Sobel>()?;
     registry.register::<filter::sobel::Scharr>()?;
+    registry.register::<filter::morphology::Erode>()?;
+    registry.register::<filter::morphology::Dilate>()?;
+    registry.register::<filter::morphology::Morphology>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<io::read_image::ReadImage>()?;

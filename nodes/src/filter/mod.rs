@@ -4,4 +4,5 @@ pub mod border;
 pub mod box_filter;
 pub mod gaussian;
 pub mod grayscale;
+pub mod morphology;
 pub mod sobel;
