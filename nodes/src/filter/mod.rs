@@ -6,3 +6,6 @@ pub mod gaussian;
 pub mod grayscale;
 pub mod morphology;
 pub mod sobel;
+
+#[cfg(test)]
+mod test_support;

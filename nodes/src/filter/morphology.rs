@@ -934,22 +934,9 @@ fn van_herk<M: Extremum, T: Sample>(
 mod tests {
     use super::*;
     use crate::filter::border::map_index;
+    use crate::filter::test_support::randoms;
     use ocellus_engine::value::Channels;
     use proptest::prelude::*;
-
-    /// Deterministic pseudo-random numbers in 0..1.
-    fn randoms(seed: u64, n: usize) -> Vec<f64> {
-        let mut state = seed;
-        (0..n)
-            .map(|_| {
-                state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-                let mut z = state;
-                z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-                z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-                ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-            })
-            .collect()
-    }
 
     #[derive(Debug, Clone, Copy, PartialEq)]
     enum Kind {

@@ -396,35 +396,8 @@ pub fn scharr(
 mod tests {
     use super::*;
     use crate::filter::border::map_index;
+    use crate::filter::test_support::{MODES, random_u8, randoms};
     use ocellus_engine::value::Channels;
-
-    const MODES: [BorderMode; 5] = [
-        BorderMode::Constant,
-        BorderMode::Wrap,
-        BorderMode::Reflect,
-        BorderMode::Reflect101,
-        BorderMode::Clamp,
-    ];
-
-    /// Deterministic pseudo-random numbers in 0..1 (splitmix64).
-    fn randoms(seed: u64, n: usize) -> Vec<f64> {
-        let mut state = seed;
-        (0..n)
-            .map(|_| {
-                state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-                let mut z = state;
-                z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-                z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-                ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-            })
-            .collect()
-    }
-
-    fn random_u8(w: usize, h: usize, channels: Channels, seed: u64) -> Image {
-        let n = w * h * channels.count();
-        let data = randoms(seed, n).iter().map(|r| (r * 256.0) as u8).collect();
-        Image::from_u8(w, h, channels, data).unwrap()
-    }
 
     fn random_f32(w: usize, h: usize, seed: u64) -> Image {
         let data = randoms(seed, w * h).iter().map(|&r| r as f32).collect();
