@@ -41,6 +41,21 @@ impl Default for BorderMode {
     }
 }
 
+/// Checks a filter's `border_value` parameter: it must be finite, and it may differ from its
+/// default 0 only with the constant border (any other border would ignore it).
+pub fn check_border_value(border: BorderMode, border_value: f64) -> Result<(), String> {
+    if !border_value.is_finite() {
+        return Err(format!("`border_value` must be finite, got {border_value}"));
+    }
+    if border != BorderMode::Constant && border_value != 0.0 {
+        return Err(format!(
+            "`border_value` applies only to border \"constant\" (border is \"{}\")",
+            border.name()
+        ));
+    }
+    Ok(())
+}
+
 /// The index inside `0..len` that position `i` of a line of `len` samples reads under `mode`,
 /// or `None` when it reads the constant border value (mode `constant` outside the line, or an
 /// empty line).

@@ -25,7 +25,7 @@ use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
 use rayon::prelude::*;
 
-use super::border::{BorderMode, BorderTable};
+use super::border::{BorderMode, BorderTable, check_border_value};
 
 /// Largest kernel side; keeps u8 window sums (≤ 255 · 4095²) inside u32.
 pub const MAX_KSIZE: u32 = 4095;
@@ -118,15 +118,7 @@ Example:
                 ));
             }
         }
-        if border != BorderMode::Constant && border_value != 0.0 {
-            return Err(format!(
-                "`border_value` applies only to border \"constant\" (border is \"{}\")",
-                border.name()
-            ));
-        }
-        if !border_value.is_finite() {
-            return Err(format!("`border_value` must be finite, got {border_value}"));
-        }
+        check_border_value(border, border_value)?;
         Ok(BoxFilter {
             ksize_x: ksize[0] as usize,
             ksize_y: ksize[1] as usize,

@@ -35,7 +35,7 @@ use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
 use rayon::prelude::*;
 
-use super::border::{BorderMode, BorderTable};
+use super::border::{BorderMode, BorderTable, check_border_value};
 
 /// Largest explicit kernel size.
 pub const MAX_KSIZE: u32 = 4095;
@@ -172,15 +172,7 @@ Example:
         if ksize == 0 && sigma_y == 0.0 {
             return Err("`sigma_y` = 0 needs an explicit odd `ksize` to derive sigma from".into());
         }
-        if border != BorderMode::Constant && border_value != 0.0 {
-            return Err(format!(
-                "`border_value` applies only to border \"constant\" (border is \"{}\")",
-                border.name()
-            ));
-        }
-        if !border_value.is_finite() {
-            return Err(format!("`border_value` must be finite, got {border_value}"));
-        }
+        check_border_value(border, border_value)?;
         let size = |sigma: f64| {
             if ksize == 0 {
                 auto_ksize(sigma)

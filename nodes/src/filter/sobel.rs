@@ -9,7 +9,7 @@ use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
 
-use super::border::BorderMode;
+use super::border::{BorderMode, check_border_value};
 use super::gaussian::separable_filter;
 
 /// Kernel sizes `filter.sobel` accepts.
@@ -146,13 +146,7 @@ fn check_common(
             return Err(format!("`{name}` must be finite, got {value}"));
         }
     }
-    if border != BorderMode::Constant && border_value != 0.0 {
-        return Err(format!(
-            "`border_value` applies only to border \"constant\" (border is \"{}\")",
-            border.name()
-        ));
-    }
-    Ok(())
+    check_border_value(border, border_value)
 }
 
 impl Operator for Sobel {
