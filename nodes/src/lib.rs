@@ -24,6 +24,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::morphology::Morphology>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<analyze::stats::Stats>()?;
+    registry.register::<analyze::quality::Quality>()?;
     registry.register::<io::read_image::ReadImage>()?;
     registry.register::<io::write_image::WriteImage>()?;
     Ok(())

@@ -8,4 +8,4 @@ pub mod morphology;
 pub mod sobel;
 
 #[cfg(test)]
-mod test_support;
+pub(crate) mod test_support;
