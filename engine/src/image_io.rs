@@ -1,4 +1,4 @@
-//! Reading and writing image files: PNG, JPEG, PNM (PGM/PPM/PAM), TIFF and PFM.
+//! Reading and writing image files: PNG, JPEG, PNM (PGM/PPM/PAM), TIFF, PFM and OpenEXR.
 //!
 //! # Reading
 //! [`read_image`] and [`decode_image`] pick the format from the file's content (magic bytes) and
@@ -12,11 +12,12 @@
 //! | palette / 1-bit (PNG, TIFF)    | expanded to `u8` gray/rgb/rgba  |
 //! | TIFF float rgb / rgba          | `rgb_f32` / `rgba_f32`          |
 //! | PFM `PF` / `Pf`                | `rgb_f32` / `gray_f32`          |
+//! | EXR one channel / RGB / RGBA   | `gray_f32` / `rgb_f32` / `rgba_f32` (half widened) |
 //!
 //! [`Image`] has no gray + alpha layout, so gray + alpha is widened to rgba (the only lossless
 //! choice). EXIF orientation and colour profiles are *not* applied: the samples are the stored
 //! ones, which is what geometric pipelines (and COLMAP) expect. TIFF gray f32 cannot be read,
-//! because the decoder we build on does not support it; use PFM for gray float images.
+//! because the decoder we build on does not support it; use PFM or EXR for gray float images.
 //!
 //! Untrusted files are decoded defensively: the header's dimensions are checked against
 //! [`DecodeLimits`] *before* any pixel buffer is allocated, and a decoder that fails — or even
@@ -33,6 +34,7 @@
 //! | PNM    | gray (P5), rgb (P6), rgba (P7 PAM) | u8, u16    |
 //! | TIFF   | gray, rgb, rgba; rgb, rgba   | u8, u16; f32     |
 //! | PFM    | gray (`Pf`), rgb (`PF`)      | f32              |
+//! | EXR    | gray (`Y`), rgb, rgba        | f32 (ZIP, lossless) |
 //!
 //! The PNM subtype follows the image's channels, not the extension (`.pgm`, `.ppm`, `.pnm` and
 //! `.pam` all select [`ImageFormat::Pnm`]). No format here stores a zero-area image: encoding one
@@ -51,8 +53,8 @@ use crate::value::{Channels, Depth, Image, PixelData};
 
 /// File extensions [`read_image`] and [`write_image`] understand (lower case; matching ignores
 /// case).
-pub const SUPPORTED_EXTENSIONS: [&str; 10] = [
-    "png", "jpg", "jpeg", "pgm", "ppm", "pnm", "pam", "tif", "tiff", "pfm",
+pub const SUPPORTED_EXTENSIONS: [&str; 11] = [
+    "png", "jpg", "jpeg", "pgm", "ppm", "pnm", "pam", "tif", "tiff", "pfm", "exr",
 ];
 
 /// JPEG quality used when the format comes from a file extension.
@@ -226,11 +228,13 @@ pub enum ImageFormat {
     Tiff,
     /// Portable Float Map, little-endian: f32 gray/rgb.
     Pfm,
+    /// OpenEXR, ZIP-compressed: f32 gray/rgb/rgba (one channel `Y`, or `R`, `G`, `B` (`A`)).
+    Exr,
 }
 
 impl ImageFormat {
     /// The format for a file extension (without the dot, any case): `png`, `jpg`/`jpeg` (quality
-    /// [`DEFAULT_JPEG_QUALITY`]), `pgm`/`ppm`/`pnm`/`pam`, `tif`/`tiff`, `pfm`.
+    /// [`DEFAULT_JPEG_QUALITY`]), `pgm`/`ppm`/`pnm`/`pam`, `tif`/`tiff`, `pfm`, `exr`.
     pub fn from_extension(ext: &str) -> Option<ImageFormat> {
         match ext.to_ascii_lowercase().as_str() {
             "png" => Some(ImageFormat::Png),
@@ -240,6 +244,7 @@ impl ImageFormat {
             "pgm" | "ppm" | "pnm" | "pam" => Some(ImageFormat::Pnm),
             "tif" | "tiff" => Some(ImageFormat::Tiff),
             "pfm" => Some(ImageFormat::Pfm),
+            "exr" => Some(ImageFormat::Exr),
             _ => None,
         }
     }
@@ -259,6 +264,7 @@ impl ImageFormat {
             ImageFormat::Pnm => "PNM",
             ImageFormat::Tiff => "TIFF",
             ImageFormat::Pfm => "PFM",
+            ImageFormat::Exr => "EXR",
         }
     }
 }
@@ -270,6 +276,8 @@ enum Detected {
     Codec(image::ImageFormat),
     /// Decoded here.
     Pfm,
+    /// Decoded by the `exr_io` module.
+    Exr,
 }
 
 /// Recognises a format from its first bytes.
@@ -286,6 +294,8 @@ fn sniff(bytes: &[u8]) -> Option<Detected> {
         || bytes.starts_with(b"MM\0+")
     {
         Some(Detected::Codec(image::ImageFormat::Tiff))
+    } else if bytes.starts_with(&crate::exr_io::EXR_MAGIC) {
+        Some(Detected::Exr)
     } else if (bytes.starts_with(b"PF") || bytes.starts_with(b"Pf")) && followed_by_space(2) {
         Some(Detected::Pfm)
     } else if bytes.first() == Some(&b'P')
@@ -306,6 +316,7 @@ fn detect_by_extension(path: &Path) -> Option<Detected> {
         ImageFormat::Pnm => Detected::Codec(image::ImageFormat::Pnm),
         ImageFormat::Tiff => Detected::Codec(image::ImageFormat::Tiff),
         ImageFormat::Pfm => Detected::Pfm,
+        ImageFormat::Exr => Detected::Exr,
     })
 }
 
@@ -334,6 +345,10 @@ pub fn decode_image(
         })?;
     match detected {
         Detected::Pfm => decode_pfm(bytes, path, limits),
+        Detected::Exr => panic::catch_unwind(AssertUnwindSafe(|| {
+            crate::exr_io::decode_exr(bytes, path, limits)
+        }))
+        .unwrap_or_else(|_| Err(corrupt(path, "the EXR decoder panicked on this data"))),
         Detected::Codec(format) => {
             // Third-party decoders face hostile bytes here; a panic in one of them must not take
             // the whole run down, so it becomes an ordinary decode error.
@@ -649,6 +664,7 @@ pub fn encode_image(image: &Image, format: ImageFormat) -> Result<Vec<u8>, Image
             Ok(out.into_inner())
         }
         ImageFormat::Pfm => encode_pfm(image),
+        ImageFormat::Exr => crate::exr_io::encode_exr(image),
     }
 }
 
@@ -937,15 +953,17 @@ mod tests {
             ImageFormat::Jpeg { .. } => depth == Depth::U8 && channels != Channels::Rgba,
             ImageFormat::Tiff => !(depth == Depth::F32 && channels == Channels::Gray),
             ImageFormat::Pfm => depth == Depth::F32 && channels != Channels::Rgba,
+            ImageFormat::Exr => depth == Depth::F32,
         }
     }
 
-    const FORMATS: [ImageFormat; 5] = [
+    const FORMATS: [ImageFormat; 6] = [
         ImageFormat::Png,
         ImageFormat::Jpeg { quality: 95 },
         ImageFormat::Pnm,
         ImageFormat::Tiff,
         ImageFormat::Pfm,
+        ImageFormat::Exr,
     ];
 
     #[test]
@@ -979,8 +997,8 @@ mod tests {
                 }
             }
         }
-        // PNG 6 + JPEG 2 + PNM 6 + TIFF 8 + PFM 2.
-        assert_eq!(checked, 24);
+        // PNG 6 + JPEG 2 + PNM 6 + TIFF 8 + PFM 2 + EXR 3.
+        assert_eq!(checked, 27);
     }
 
     #[test]
@@ -994,7 +1012,7 @@ mod tests {
             -7.5,
         ];
         let image = Image::from_f32(2, 1, Channels::Rgb, special.to_vec()).unwrap();
-        for format in [ImageFormat::Pfm, ImageFormat::Tiff] {
+        for format in [ImageFormat::Pfm, ImageFormat::Tiff, ImageFormat::Exr] {
             let bytes = encode_image(&image, format).unwrap();
             let back = decode_image(&bytes, Path::new(""), &DecodeLimits::default()).unwrap();
             let bits = |i: &Image| {
@@ -1005,6 +1023,56 @@ mod tests {
                     .collect::<Vec<_>>()
             };
             assert_eq!(bits(&back), bits(&image), "{format:?}");
+        }
+    }
+
+    #[test]
+    fn exr_reads_half_floats_and_rejects_bad_files() {
+        use exr::prelude::{
+            AnyChannel, AnyChannels, Encoding, FlatSamples, Image as ExrImage, Layer,
+            LayerAttributes, SmallVec, WritableImage, f16,
+        };
+        // A half-float "Z" channel (a depth map as renderers write it) reads as gray f32.
+        let depth: Vec<f16> = [0.5f32, 1.25, -2.0, 65504.0, 0.0, 3.0]
+            .iter()
+            .map(|&v| f16::from_f32(v))
+            .collect();
+        let channels: SmallVec<[AnyChannel<FlatSamples>; 4]> =
+            SmallVec::from_vec(vec![AnyChannel::new("Z", FlatSamples::F16(depth))]);
+        let layer = Layer::new(
+            (3, 2),
+            LayerAttributes::default(),
+            Encoding::UNCOMPRESSED,
+            AnyChannels::sort(channels),
+        );
+        let mut bytes = Cursor::new(Vec::new());
+        ExrImage::from_layer(layer)
+            .write()
+            .to_buffered(&mut bytes)
+            .unwrap();
+        let bytes = bytes.into_inner();
+        let image = decode_image(&bytes, Path::new("depth.exr"), &DecodeLimits::default()).unwrap();
+        assert_eq!(image.channels(), Channels::Gray);
+        assert_eq!(
+            image.as_f32().unwrap(),
+            &[0.5, 1.25, -2.0, 65504.0, 0.0, 3.0]
+        );
+        // Over the pixel limit: refused before decoding.
+        let small = DecodeLimits {
+            max_pixels: 5,
+            ..DecodeLimits::default()
+        };
+        let err = decode_image(&bytes, Path::new("depth.exr"), &small).unwrap_err();
+        assert!(matches!(err, ImageIoError::TooLarge { .. }), "{err}");
+        // Truncated: a clean corruption error naming the file.
+        for cut in [4, 20, bytes.len() / 2, bytes.len() - 3] {
+            let err = decode_image(
+                &bytes[..cut],
+                Path::new("cut.exr"),
+                &DecodeLimits::default(),
+            )
+            .unwrap_err();
+            assert!(err.to_string().contains("cut.exr"), "{err}");
         }
     }
 
@@ -1267,6 +1335,7 @@ mod tests {
         }
         assert_eq!(ImageFormat::from_extension("tif"), Some(ImageFormat::Tiff));
         assert_eq!(ImageFormat::from_extension("pfm"), Some(ImageFormat::Pfm));
+        assert_eq!(ImageFormat::from_extension("EXR"), Some(ImageFormat::Exr));
         assert_eq!(ImageFormat::from_extension("bmp"), None);
         for ext in SUPPORTED_EXTENSIONS {
             assert!(ImageFormat::from_extension(ext).is_some());
@@ -1281,7 +1350,7 @@ mod tests {
                 3,
                 crate::value::PixelFormat {
                     channels: Channels::Gray,
-                    depth: if format == ImageFormat::Pfm {
+                    depth: if matches!(format, ImageFormat::Pfm | ImageFormat::Exr) {
                         Depth::F32
                     } else {
                         Depth::U8

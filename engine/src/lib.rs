@@ -14,6 +14,7 @@ pub mod codec;
 pub mod diag;
 pub mod emit;
 pub mod exec;
+mod exr_io;
 pub mod graph;
 pub mod image_io;
 pub mod op;

@@ -18,7 +18,7 @@ ocellus_engine::params! {
     }
 }
 
-/// Reads PNG (8/16-bit), JPEG, PNM (PGM/PPM/PAM), TIFF and PFM files into gray/rgb/rgba images of
+/// Reads PNG (8/16-bit), JPEG, PNM (PGM/PPM/PAM), TIFF, PFM and OpenEXR files into gray/rgb/rgba images of
 /// u8, u16 or f32 samples, without lossy conversion. The format is recognised by content.
 pub struct ReadImage {
     params: ReadImageParams,
@@ -46,9 +46,9 @@ impl Operator for ReadImage {
 impl Op for ReadImage {
     type Params = ReadImageParams;
     const ID: &'static str = "io.read_image";
-    const SUMMARY: &'static str = "Read an image file (PNG, JPEG, PNM, TIFF, PFM).";
+    const SUMMARY: &'static str = "Read an image file (PNG, JPEG, PNM, TIFF, PFM, EXR).";
     const DOC: &'static str = "Decodes by content (magic bytes), keeping bit depth: 8-bit → u8, \
-        16-bit → u16, PFM/float TIFF → f32. Gray+alpha becomes rgba. Dimensions are checked \
+        16-bit → u16, PFM/float TIFF/EXR → f32 (one EXR channel → gray, half floats widened). Gray+alpha becomes rgba. Dimensions are checked \
         against `max_pixels` before decoding. Corrupt or truncated files are errors, never \
         partial images. Example: `(op: \"io.read_image\", params: (path: \"data/card.png\"))`.";
 

@@ -10,14 +10,14 @@ use ocellus_engine::{
 ocellus_engine::params! {
     /// Parameters of [`WriteImage`].
     pub struct WriteImageParams {
-        /// Destination; the extension picks the format (png, jpg, pgm/ppm/pnm, tif, pfm).
+        /// Destination; the extension picks the format (png, jpg, pgm/ppm/pnm, tif, pfm, exr).
         /// Relative paths resolve against the graph file's folder.
         path: PathBuf = PathBuf::new(),
     }
 }
 
 /// Writes an image file. The file appears complete or not at all (temporary file + rename).
-/// PNG holds u8 and u16 (16-bit PNG); PFM holds f32 gray/rgb; JPEG holds u8 gray/rgb.
+/// PNG holds u8 and u16 (16-bit PNG); PFM holds f32 gray/rgb; EXR holds f32 gray/rgb/rgba; JPEG holds u8 gray/rgb.
 pub struct WriteImage {
     params: WriteImageParams,
 }
@@ -51,7 +51,8 @@ fn numbered(path: &std::path::Path, k: usize) -> PathBuf {
 impl Op for WriteImage {
     type Params = WriteImageParams;
     const ID: &'static str = "io.write_image";
-    const SUMMARY: &'static str = "Write an image file (PNG, JPEG, PNM, TIFF, PFM), atomically.";
+    const SUMMARY: &'static str =
+        "Write an image file (PNG, JPEG, PNM, TIFF, PFM, EXR), atomically.";
     const DOC: &'static str = "Encodes by the path's extension and writes through a temporary file \
         renamed into place, so readers never see a partial file. Runs whenever the graph runs \
         without an output selection (it is a side effect), and is never served from the cache. \
@@ -84,7 +85,7 @@ impl Op for WriteImage {
             .is_some_and(|e| ocellus_engine::image_io::ImageFormat::from_extension(e).is_some());
         if !known {
             return Err(format!(
-                "cannot tell the image format of `{}`: use .png, .jpg, .pgm/.ppm/.pnm, .tif or .pfm",
+                "cannot tell the image format of `{}`: use .png, .jpg, .pgm/.ppm/.pnm, .tif, .pfm or .exr",
                 params.path.display()
             ));
         }
