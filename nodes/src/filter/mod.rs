@@ -4,7 +4,9 @@ pub mod border;
 pub mod box_filter;
 pub mod gaussian;
 pub mod grayscale;
+pub mod median;
 pub mod morphology;
+pub mod rank;
 pub mod sobel;
 
 #[cfg(test)]
