@@ -1,5 +1,6 @@
 //! Image filters: colour conversion, linear and non-linear filtering.
 
+pub mod bilateral;
 pub mod border;
 pub mod box_filter;
 pub mod gaussian;
