@@ -5,6 +5,7 @@ pub mod border;
 pub mod box_filter;
 pub mod gaussian;
 pub mod grayscale;
+pub mod kuwahara;
 pub mod median;
 pub mod morphology;
 pub mod rank;
