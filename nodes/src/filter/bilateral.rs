@@ -198,12 +198,12 @@ pub fn bilateral_filter(
     };
     let data = match image.data() {
         PixelData::U8(src) => {
-            let table = integer_table(256);
+            let weights = U8Weights::new(&integer_table(256));
             let constant = border_value.round_ties_even() as u8;
             PixelData::U8(match c {
-                1 => bands::<u8, _, 1>(src, &g, constant, &IntegerWeights(&table)),
-                3 => bands::<u8, _, 3>(src, &g, constant, &IntegerWeights(&table)),
-                _ => bands::<u8, _, 4>(src, &g, constant, &IntegerWeights(&table)),
+                1 => bands::<u8, _, 1>(src, &g, constant, &weights),
+                3 => bands::<u8, _, 3>(src, &g, constant, &weights),
+                _ => bands::<u8, _, 4>(src, &g, constant, &weights),
             })
         }
         PixelData::U16(src) => {
@@ -307,14 +307,28 @@ trait ColorWeights<T>: Sync {
 /// Exact table over the integer L1 distance.
 struct IntegerWeights<'a>(&'a [f32]);
 
-impl ColorWeights<u8> for IntegerWeights<'_> {
+/// Exact table over the L1 distance of u8 pixels (at most 4 · 255 < 1024): a fixed size, so
+/// lookups need no bounds checks.
+struct U8Weights(Box<[f32; 1024]>);
+
+impl U8Weights {
+    fn new(table: &[f32]) -> Self {
+        let mut fixed = Box::new([0.0f32; 1024]);
+        for (f, &t) in fixed.iter_mut().zip(table) {
+            *f = t;
+        }
+        U8Weights(fixed)
+    }
+}
+
+impl ColorWeights<u8> for U8Weights {
     #[inline(always)]
     fn weight<const C: usize>(&self, a: &[u8; C], b: &[u8; C]) -> f32 {
         let mut d = 0usize;
         for ch in 0..C {
             d += a[ch].abs_diff(b[ch]) as usize;
         }
-        self.0.get(d).copied().unwrap_or(0.0)
+        self.0[d & 1023]
     }
 }
 
