@@ -523,7 +523,7 @@ mod tests {
                 *per_pixel.entry((t.dy, t.dx)).or_insert(0.0f64) += t.weight as f64;
             }
             for (&(dy, dx), &w) in &per_pixel {
-                let rho2 = ((dy as f64 - 4.0).powi(2) + (dx as f64 - 4.0).powi(2)) as f64;
+                let rho2 = (dy as f64 - 4.0).powi(2) + (dx as f64 - 4.0).powi(2);
                 assert!((w - (-rho2 / 8.0).exp()).abs() < 1e-6, "n {n} ({dy}, {dx})");
             }
             // Every sector gets pixels.

@@ -143,7 +143,7 @@ Example:
             border,
             border_value,
         } = params;
-        if !(1..=MAX_KSIZE).contains(&ksize) || ksize % 2 == 0 {
+        if !(1..=MAX_KSIZE).contains(&ksize) || ksize.is_multiple_of(2) {
             return Err(format!(
                 "`ksize` must be odd and between 1 and {MAX_KSIZE} px, got {ksize}"
             ));
@@ -183,7 +183,7 @@ pub fn median_blur_with(
     border_value: f64,
     method: MedianMethod,
 ) -> Result<Image, String> {
-    if ksize % 2 == 0 {
+    if ksize.is_multiple_of(2) {
         return Err(format!("`ksize` must be odd, got {ksize}"));
     }
     if image.is_empty() || ksize == 1 {
