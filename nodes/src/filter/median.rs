@@ -20,6 +20,11 @@
 //! - **Sort** (every other case: u16 and f32 with ksize ≥ 7): gathers each window and selects
 //!   the middle sample (`select_nth_unstable`), O(k²) per sample.
 //!
+//! Crossover, measured on a 1080p gray u8 image, one thread (CPU time, rough): network 2 ms
+//! (3×3) and 13 ms (5×5); histogram about 85 ms for every ksize from 3 to 15; sort 170 ms
+//! (3×3), 390 ms (5×5), 650 ms (7×7). Hence networks for 3 and 5, histograms from 7 up for u8
+//! (no network is generated for 7×7), and sorting only where neither applies.
+//!
 //! All three are exact and return the same value (the middle of the sorted window), so the
 //! method never changes the result (f32 NaN excepted, see the operator docs). The image is cut
 //! into fixed bands of rows processed in parallel; every band pads its own rows, so results are
