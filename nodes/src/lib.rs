@@ -22,6 +22,11 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::morphology::Erode>()?;
     registry.register::<filter::morphology::Dilate>()?;
     registry.register::<filter::morphology::Morphology>()?;
+    registry.register::<filter::median::Median>()?;
+    registry.register::<filter::bilateral::Bilateral>()?;
+    registry.register::<filter::kuwahara::Kuwahara>()?;
+    registry.register::<filter::rank::MinFilter>()?;
+    registry.register::<filter::rank::MaxFilter>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;

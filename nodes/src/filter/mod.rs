@@ -1,10 +1,14 @@
 //! Image filters: colour conversion, linear and non-linear filtering.
 
+pub mod bilateral;
 pub mod border;
 pub mod box_filter;
 pub mod gaussian;
 pub mod grayscale;
+pub mod kuwahara;
+pub mod median;
 pub mod morphology;
+pub mod rank;
 pub mod sobel;
 
 #[cfg(test)]
