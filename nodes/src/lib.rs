@@ -15,6 +15,7 @@ use ocellus_engine::op::{Registry, RegistryError};
 pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<capture::pattern::Pattern>()?;
     registry.register::<filter::grayscale::Grayscale>()?;
+    registry.register::<filter::color::ConvertColor>()?;
     registry.register::<filter::gaussian::Gaussian>()?;
     registry.register::<filter::box_filter::BoxFilter>()?;
     registry.register::<filter::sobel::Sobel>()?;

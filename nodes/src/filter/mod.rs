@@ -2,6 +2,7 @@
 
 pub mod border;
 pub mod box_filter;
+pub mod color;
 pub mod gaussian;
 pub mod grayscale;
 pub mod morphology;
