@@ -16,6 +16,9 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<capture::pattern::Pattern>()?;
     registry.register::<filter::grayscale::Grayscale>()?;
     registry.register::<filter::color::ConvertColor>()?;
+    registry.register::<filter::convert::ConvertType>()?;
+    registry.register::<filter::convert::SplitChannels>()?;
+    registry.register::<filter::convert::MergeChannels>()?;
     registry.register::<filter::gaussian::Gaussian>()?;
     registry.register::<filter::box_filter::BoxFilter>()?;
     registry.register::<filter::sobel::Sobel>()?;
