@@ -19,6 +19,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::convert::ConvertType>()?;
     registry.register::<filter::convert::SplitChannels>()?;
     registry.register::<filter::convert::MergeChannels>()?;
+    registry.register::<filter::composite::Over>()?;
+    registry.register::<filter::composite::Radiometric>()?;
     registry.register::<filter::gaussian::Gaussian>()?;
     registry.register::<filter::box_filter::BoxFilter>()?;
     registry.register::<filter::sobel::Sobel>()?;
