@@ -14,6 +14,7 @@ use ocellus_engine::op::{Registry, RegistryError};
 /// Registers every built-in operator.
 pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<capture::pattern::Pattern>()?;
+    registry.register::<capture::sequence::Sequence>()?;
     registry.register::<filter::grayscale::Grayscale>()?;
     registry.register::<filter::color::ConvertColor>()?;
     registry.register::<filter::convert::ConvertType>()?;
