@@ -250,8 +250,8 @@ fn convert_u8<const C: usize>(src: &[u8], conversion: Conversion) -> Vec<u8> {
                 lab_to_linear_rgb(lab).map(|x| to_u8(tables.encode(x) * 255.0))
             })
         }
-        Conversion::RgbToYcbcr => map_pixels::<u8, C>(src, ycbcr_from_rgb_u8),
-        Conversion::YcbcrToRgb => map_pixels::<u8, C>(src, rgb_from_ycbcr_u8),
+        Conversion::RgbToYcbcr => planar_u8::<C>(src, ycbcr_from_rgb_planes),
+        Conversion::YcbcrToRgb => planar_u8::<C>(src, rgb_from_ycbcr_planes),
     }
 }
 
@@ -311,75 +311,83 @@ pub fn hsv_hdiv(d: i32) -> i32 {
     }
 }
 
-/// The same divisions in f32 (one `divps` per block lane instead of a table gather);
-/// `hsv_tables_match_f32_divisions` checks them against the tables for every 8-bit input. The
-/// inputs are at least 1: the result is multiplied by zero where OpenCV's table holds 0.
+/// `round(numerator / d)` for d ≥ 1 in f32 lanes (`divps`), rounded by adding 1.5·2²³ and
+/// reading the bits back (exact for results below 2²², and vectorizable, unlike a saturating
+/// float-to-int cast); d = 0 is taken as 1, where OpenCV's tables hold 0 but the result is
+/// multiplied by zero. `hsv_tables_match_f32_divisions` checks every 8-bit input.
 #[inline(always)]
 fn div_round(numerator: f32, d: i32) -> i32 {
-    (numerator / d.max(1) as f32 + 0.5) as i32
+    const MAGIC: f32 = 12_582_912.0;
+    let q = numerator / d.max(1) as f32;
+    ((q + MAGIC).to_bits() as i32) - (MAGIC.to_bits() as i32)
+}
+
+/// One block of [`BLOCK`] pixels as three planes of i32 (the tail of a partial block is zero).
+type Planes = [[i32; BLOCK]; 3];
+
+/// Runs `kernel` over the u8 pixels of `src` in blocks of [`BLOCK`]: the three colour samples
+/// are deinterleaved into i32 planes, transformed in place (loops over plain arrays that LLVM
+/// vectorizes), then clamped to 0..=255 and interleaved back; alpha is copied.
+fn planar_u8<const C: usize>(src: &[u8], kernel: impl Fn(&mut Planes) + Sync) -> Vec<u8> {
+    let mut dst = src.to_vec();
+    dst.par_chunks_mut(PIXELS_PER_TASK * C).for_each(|chunk| {
+        let mut planes = [[0i32; BLOCK]; 3];
+        for block in chunk.chunks_mut(BLOCK * C) {
+            let [a, b, c] = &mut planes;
+            for (((p, a), b), c) in block
+                .chunks_exact(C)
+                .zip(a.iter_mut())
+                .zip(b.iter_mut())
+                .zip(c.iter_mut())
+            {
+                *a = i32::from(p[0]);
+                *b = i32::from(p[1]);
+                *c = i32::from(p[2]);
+            }
+            kernel(&mut planes);
+            let [a, b, c] = &planes;
+            for (((p, a), b), c) in block
+                .chunks_exact_mut(C)
+                .zip(a.iter())
+                .zip(b.iter())
+                .zip(c.iter())
+            {
+                p[0] = (*a).clamp(0, 255) as u8;
+                p[1] = (*b).clamp(0, 255) as u8;
+                p[2] = (*c).clamp(0, 255) as u8;
+            }
+        }
+    });
+    dst
 }
 
 /// RGB → HSV for u8, bit-exact with OpenCV's `RGB2HSV_b`: S = (Δ·sdiv[V] + 2¹¹) >> 12 and
 /// H = (h'·hdiv[Δ] + 2¹¹) >> 12 (+180 if negative), where h' is G − B, B − R + 2Δ or R − G + 4Δ
 /// for a maximum in R, G or B (R first on ties, then G).
 fn rgb_to_hsv_u8<const C: usize>(src: &[u8]) -> Vec<u8> {
-    let mut dst = src.to_vec();
-    dst.par_chunks_mut(PIXELS_PER_TASK * C).for_each(|chunk| {
-        for block in chunk.chunks_mut(BLOCK * C) {
-            hsv_block::<C>(block);
+    planar_u8::<C>(src, |[r, g, b]| {
+        let round = 1 << (HSV_SHIFT - 1);
+        for i in 0..BLOCK {
+            let (red, green, blue) = (r[i], g[i], b[i]);
+            let max = red.max(green).max(blue);
+            let min = red.min(green).min(blue);
+            let diff = max - min;
+            let sdiv = div_round((255 << HSV_SHIFT) as f32, max);
+            let hdiv = div_round((30 << HSV_SHIFT) as f32, diff);
+            let sat = (diff * sdiv + round) >> HSV_SHIFT;
+            let hp = if max == red {
+                green - blue
+            } else if max == green {
+                blue - red + 2 * diff
+            } else {
+                red - green + 4 * diff
+            };
+            let hue = (hp * hdiv + round) >> HSV_SHIFT;
+            r[i] = if hue < 0 { hue + 180 } else { hue };
+            g[i] = sat;
+            b[i] = max;
         }
-    });
-    dst
-}
-
-/// Converts up to [`BLOCK`] pixels in place: deinterleave, compute in lanes, interleave.
-#[inline(always)]
-fn hsv_block<const C: usize>(block: &mut [u8]) {
-    let mut r = [0i32; BLOCK];
-    let mut g = [0i32; BLOCK];
-    let mut b = [0i32; BLOCK];
-    for (((p, r), g), b) in block
-        .chunks_exact(C)
-        .zip(r.iter_mut())
-        .zip(g.iter_mut())
-        .zip(b.iter_mut())
-    {
-        *r = i32::from(p[0]);
-        *g = i32::from(p[1]);
-        *b = i32::from(p[2]);
-    }
-    let mut h = [0u8; BLOCK];
-    let mut s = [0u8; BLOCK];
-    let mut v = [0u8; BLOCK];
-    let round = 1 << (HSV_SHIFT - 1);
-    for i in 0..BLOCK {
-        let (r, g, b) = (r[i], g[i], b[i]);
-        let max = r.max(g).max(b);
-        let min = r.min(g).min(b);
-        let diff = max - min;
-        let sdiv = div_round((255 << HSV_SHIFT) as f32, max);
-        let hdiv = div_round((30 << HSV_SHIFT) as f32, diff);
-        let sat = (diff * sdiv + round) >> HSV_SHIFT;
-        let hp = if max == r {
-            g - b
-        } else if max == g {
-            b - r + 2 * diff
-        } else {
-            r - g + 4 * diff
-        };
-        let mut hue = (hp * hdiv + round) >> HSV_SHIFT;
-        if hue < 0 {
-            hue += 180;
-        }
-        h[i] = hue as u8;
-        s[i] = sat as u8;
-        v[i] = max as u8;
-    }
-    for (i, p) in block.chunks_exact_mut(C).enumerate().take(BLOCK) {
-        p[0] = h[i];
-        p[1] = s[i];
-        p[2] = v[i];
-    }
+    })
 }
 
 /// RGB (0..1) → HSV (H degrees, S, V in 0..1), OpenCV's `RGB2HSV_f`.
@@ -708,26 +716,30 @@ const G_FROM_CB_Q14: i32 = -5638;
 const G_FROM_CR_Q14: i32 = -11700;
 const B_FROM_CB_Q14: i32 = 29032;
 
-#[inline]
-fn ycbcr_from_rgb_u8(p: [u8; 3]) -> [u8; 3] {
-    let [r, g, b] = p.map(i32::from);
+/// RGB → YCbCr in 14-bit fixed point on one block (results clamped by [`planar_u8`]).
+fn ycbcr_from_rgb_planes([r, g, b]: &mut Planes) {
     let round = 1 << (YCC_SHIFT - 1);
     let bias = (128 << YCC_SHIFT) + round;
-    let y = (r * Y_Q14[0] + g * Y_Q14[1] + b * Y_Q14[2] + round) >> YCC_SHIFT;
-    let cb = (r * CB_Q14[0] + g * CB_Q14[1] + b * CB_Q14[2] + bias) >> YCC_SHIFT;
-    let cr = (r * CR_Q14[0] + g * CR_Q14[1] + b * CR_Q14[2] + bias) >> YCC_SHIFT;
-    [y, cb, cr].map(|x| x.clamp(0, 255) as u8)
+    for i in 0..BLOCK {
+        let (red, green, blue) = (r[i], g[i], b[i]);
+        let y = (red * Y_Q14[0] + green * Y_Q14[1] + blue * Y_Q14[2] + round) >> YCC_SHIFT;
+        let cb = (red * CB_Q14[0] + green * CB_Q14[1] + blue * CB_Q14[2] + bias) >> YCC_SHIFT;
+        let cr = (red * CR_Q14[0] + green * CR_Q14[1] + blue * CR_Q14[2] + bias) >> YCC_SHIFT;
+        r[i] = y;
+        g[i] = cb;
+        b[i] = cr;
+    }
 }
 
-#[inline]
-fn rgb_from_ycbcr_u8(p: [u8; 3]) -> [u8; 3] {
-    let [y, cb, cr] = p.map(i32::from);
-    let (cb, cr) = (cb - 128, cr - 128);
+/// YCbCr → RGB in 14-bit fixed point on one block (results clamped by [`planar_u8`]).
+fn rgb_from_ycbcr_planes([y, cb, cr]: &mut Planes) {
     let round = 1 << (YCC_SHIFT - 1);
-    let r = y + ((cr * R_FROM_CR_Q14 + round) >> YCC_SHIFT);
-    let g = y + ((cb * G_FROM_CB_Q14 + cr * G_FROM_CR_Q14 + round) >> YCC_SHIFT);
-    let b = y + ((cb * B_FROM_CB_Q14 + round) >> YCC_SHIFT);
-    [r, g, b].map(|x| x.clamp(0, 255) as u8)
+    for i in 0..BLOCK {
+        let (luma, u, v) = (y[i], cb[i] - 128, cr[i] - 128);
+        y[i] = luma + ((v * R_FROM_CR_Q14 + round) >> YCC_SHIFT);
+        cb[i] = luma + ((u * G_FROM_CB_Q14 + v * G_FROM_CR_Q14 + round) >> YCC_SHIFT);
+        cr[i] = luma + ((u * B_FROM_CB_Q14 + round) >> YCC_SHIFT);
+    }
 }
 
 #[cfg(test)]

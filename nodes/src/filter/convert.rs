@@ -85,8 +85,8 @@ Unlike `convertTo`, whose scale defaults to 1, the default scale maps full range
 range (u8 0..255 ↔ u16 0..65535 ↔ f32 0..1): u8 → f32 multiplies by 1/255, u8 → u16 by 257
 (exact: 255 → 65535), u16 → u8 by 1/257. Give `scale: 1.0` for OpenCV's behaviour.
 
-u8 and u16 inputs go through a table of every input value, so the cost is one lookup per
-sample whatever the scale.
+u8 and u16 inputs to u8 or u16 go through a table of every input value (one lookup per
+sample whatever the scale); conversions to f32 are plain vectorized arithmetic.
 
 Reference: OpenCV `cv::Mat::convertTo`.
 
@@ -176,12 +176,12 @@ pub fn convert_type(
         PixelData::U8(src) => match depth {
             Depth::U8 => PixelData::U8(by_table(src, scale, offset)),
             Depth::U16 => PixelData::U16(by_table(src, scale, offset)),
-            Depth::F32 => PixelData::F32(by_table(src, scale, offset)),
+            Depth::F32 => PixelData::F32(integer_to_float(src, scale, offset)),
         },
         PixelData::U16(src) => match depth {
             Depth::U8 => PixelData::U8(by_table(src, scale, offset)),
             Depth::U16 => PixelData::U16(by_table(src, scale, offset)),
-            Depth::F32 => PixelData::F32(by_table(src, scale, offset)),
+            Depth::F32 => PixelData::F32(integer_to_float(src, scale, offset)),
         },
         PixelData::F32(src) => match depth {
             Depth::U8 => PixelData::U8(from_float(src, scale, offset)),
@@ -209,6 +209,19 @@ where
                 if let Some(&t) = table.get(v.into()) {
                     *o = t;
                 }
+            }
+        });
+    dst
+}
+
+/// Integer inputs to f32: plain arithmetic, which vectorizes (a table lookup does not).
+fn integer_to_float<T: Copy + Sync + Into<f64>>(src: &[T], scale: f64, offset: f64) -> Vec<f32> {
+    let mut dst = vec![0.0; src.len()];
+    dst.par_chunks_mut(SAMPLES_PER_TASK)
+        .zip(src.par_chunks(SAMPLES_PER_TASK))
+        .for_each(|(out, inp)| {
+            for (o, &v) in out.iter_mut().zip(inp) {
+                *o = (v.into() * scale + offset) as f32;
             }
         });
     dst
