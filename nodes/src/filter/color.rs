@@ -232,22 +232,22 @@ fn convert_u8<const C: usize>(src: &[u8], conversion: Conversion) -> Vec<u8> {
             rgb.map(|x| to_u8((x * 255.0) as f32))
         }),
         Conversion::RgbToLab => {
-            let tables = LabTables::get();
+            let (tables, m) = (LabTables::get(), LabTables::get_matrices());
             map_pixels::<u8, C>(src, |p| {
                 let lin = p.map(|x| tables.linear[usize::from(x)]);
-                let [l, a, b] = linear_rgb_to_lab(lin, |t| tables.lab_f(t));
+                let [l, a, b] = linear_rgb_to_lab(lin, m, |t| tables.lab_f(t));
                 [l * (255.0 / 100.0), a + 128.0, b + 128.0].map(to_u8)
             })
         }
         Conversion::LabToRgb => {
-            let tables = LabTables::get();
+            let (tables, m) = (LabTables::get(), LabTables::get_matrices());
             map_pixels::<u8, C>(src, |[l, a, b]| {
                 let lab = [
                     f32::from(l) * (100.0 / 255.0),
                     f32::from(a) - 128.0,
                     f32::from(b) - 128.0,
                 ];
-                lab_to_linear_rgb(lab).map(|x| to_u8(tables.encode(x) * 255.0))
+                lab_to_linear_rgb(lab, m).map(|x| to_u8(tables.encode(x) * 255.0))
             })
         }
         Conversion::RgbToYcbcr => planar_u8::<C>(src, ycbcr_from_rgb_planes),
@@ -265,11 +265,15 @@ fn convert_f32<const C: usize>(src: &[f32], conversion: Conversion) -> Vec<f32> 
         Conversion::HsiToRgb => {
             map_pixels::<f32, C>(src, |p| hsi_to_rgb(p.map(f64::from)).map(|x| x as f32))
         }
-        Conversion::RgbToLab => map_pixels::<f32, C>(src, |p| {
-            linear_rgb_to_lab(p.map(srgb_to_linear), lab_f_exact)
-        }),
+        Conversion::RgbToLab => {
+            let m = LabTables::get_matrices();
+            map_pixels::<f32, C>(src, |p| {
+                linear_rgb_to_lab(p.map(srgb_to_linear), m, lab_f_exact)
+            })
+        }
         Conversion::LabToRgb => {
-            map_pixels::<f32, C>(src, |p| lab_to_linear_rgb(p).map(linear_to_srgb))
+            let m = LabTables::get_matrices();
+            map_pixels::<f32, C>(src, |p| lab_to_linear_rgb(p, m).map(linear_to_srgb))
         }
         Conversion::RgbToYcbcr => map_pixels::<f32, C>(src, |[r, g, b]| {
             let y = KR * r + KG * g + KB * b;
@@ -418,12 +422,17 @@ fn hsv_to_rgb_f32([h, s, v]: [f32; 3], hscale: f32) -> [f32; 3] {
     if s == 0.0 {
         return [v, v, v];
     }
-    let mut h = (h * hscale).rem_euclid(6.0);
+    let mut h = h * hscale;
+    // Hues outside one turn are rare: wrap them only then (no libm call on the common path).
     if !(0.0..6.0).contains(&h) {
-        h = 0.0;
+        h = h.rem_euclid(6.0);
+        if !(0.0..6.0).contains(&h) {
+            h = 0.0;
+        }
     }
-    let sector = h.floor();
-    let f = h - sector;
+    // h ≥ 0, so truncation is the floor.
+    let sector = (h as usize).min(5);
+    let f = h - sector as f32;
     let tab = [
         v,
         v * (1.0 - s),
@@ -434,8 +443,7 @@ fn hsv_to_rgb_f32([h, s, v]: [f32; 3], hscale: f32) -> [f32; 3] {
     const R: [usize; 6] = [0, 2, 1, 1, 3, 0];
     const G: [usize; 6] = [3, 0, 0, 2, 1, 1];
     const B: [usize; 6] = [1, 1, 3, 0, 0, 2];
-    let k = (sector as usize).min(5);
-    [tab[R[k]], tab[G[k]], tab[B[k]]]
+    [tab[R[sector]], tab[G[sector]], tab[B[sector]]]
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -571,8 +579,7 @@ fn lab_f_exact(t: f32) -> f32 {
 
 /// Linear RGB (0..1) → L*a*b* with a given f(t).
 #[inline]
-fn linear_rgb_to_lab(rgb: [f32; 3], f: impl Fn(f32) -> f32) -> [f32; 3] {
-    let m = LabTables::get_matrices();
+fn linear_rgb_to_lab(rgb: [f32; 3], m: &LabMatrices, f: impl Fn(f32) -> f32) -> [f32; 3] {
     let [x, y, z] = m
         .forward
         .map(|row| row[0] * rgb[0] + row[1] * rgb[1] + row[2] * rgb[2]);
@@ -587,7 +594,7 @@ fn linear_rgb_to_lab(rgb: [f32; 3], f: impl Fn(f32) -> f32) -> [f32; 3] {
 
 /// L*a*b* → linear RGB, clipped to [0, 1] (OpenCV's `Lab2RGB_f`).
 #[inline]
-fn lab_to_linear_rgb([l, a, b]: [f32; 3]) -> [f32; 3] {
+fn lab_to_linear_rgb([l, a, b]: [f32; 3], m: &LabMatrices) -> [f32; 3] {
     let (y, fy) = if l <= LAB_KAPPA * LAB_T {
         let y = l / LAB_KAPPA;
         (y, LAB_SLOPE * y + 16.0 / 116.0)
@@ -604,7 +611,6 @@ fn lab_to_linear_rgb([l, a, b]: [f32; 3]) -> [f32; 3] {
     };
     let x = finv(a / 500.0 + fy);
     let z = finv(fy - b / 200.0);
-    let m = LabTables::get_matrices();
     m.inverse
         .map(|row| (row[0] * x + row[1] * y + row[2] * z).clamp(0.0, 1.0))
 }
