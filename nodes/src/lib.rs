@@ -14,7 +14,14 @@ use ocellus_engine::op::{Registry, RegistryError};
 /// Registers every built-in operator.
 pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<capture::pattern::Pattern>()?;
+    registry.register::<capture::sequence::Sequence>()?;
     registry.register::<filter::grayscale::Grayscale>()?;
+    registry.register::<filter::color::ConvertColor>()?;
+    registry.register::<filter::convert::ConvertType>()?;
+    registry.register::<filter::convert::SplitChannels>()?;
+    registry.register::<filter::convert::MergeChannels>()?;
+    registry.register::<filter::composite::Over>()?;
+    registry.register::<filter::composite::Radiometric>()?;
     registry.register::<filter::gaussian::Gaussian>()?;
     registry.register::<filter::box_filter::BoxFilter>()?;
     registry.register::<filter::sobel::Sobel>()?;

@@ -1,3 +1,4 @@
 //! Sources that synthesise or capture images.
 
 pub mod pattern;
+pub mod sequence;

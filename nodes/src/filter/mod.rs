@@ -3,6 +3,9 @@
 pub mod bilateral;
 pub mod border;
 pub mod box_filter;
+pub mod color;
+pub mod composite;
+pub mod convert;
 pub mod gaussian;
 pub mod grayscale;
 pub mod kuwahara;
