@@ -2,9 +2,11 @@
 
 pub mod border;
 pub mod box_filter;
+pub mod frequency;
 pub mod gaussian;
 pub mod grayscale;
 pub mod morphology;
+pub mod noise;
 pub mod sobel;
 
 #[cfg(test)]
