@@ -95,7 +95,7 @@ impl Operator for Dct {
 /// the inverse needs multiples of 8 (else an error message).
 pub fn dct_8x8(image: &Image, inverse: bool) -> Result<Image, String> {
     let (w, h) = (image.width(), image.height());
-    if inverse && (w % BLOCK != 0 || h % BLOCK != 0) {
+    if inverse && (!w.is_multiple_of(BLOCK) || !h.is_multiple_of(BLOCK)) {
         return Err(format!(
             "the inverse DCT needs a width and height that are multiples of 8, got {w}×{h}"
         ));
@@ -145,7 +145,7 @@ pub fn dct_matrix() -> [[f32; BLOCK]; BLOCK] {
 /// If `plane.len() != w · h` or a side is not a multiple of 8.
 pub fn dct_plane(plane: &[f32], w: usize, h: usize, inverse: bool) -> Vec<f32> {
     assert!(
-        plane.len() == w * h && w % BLOCK == 0 && h % BLOCK == 0,
+        plane.len() == w * h && w.is_multiple_of(BLOCK) && h.is_multiple_of(BLOCK),
         "plane size"
     );
     let c = dct_matrix();
@@ -225,7 +225,10 @@ mod tests {
     #[test]
     fn dc_is_eight_times_the_mean_and_constant_blocks_have_only_dc() {
         let (w, h) = (16, 8);
-        let p: Vec<f32> = randoms(3, w * h).iter().map(|&r| (r * 255.0) as f32).collect();
+        let p: Vec<f32> = randoms(3, w * h)
+            .iter()
+            .map(|&r| (r * 255.0) as f32)
+            .collect();
         let out = dct_plane(&p, w, h, false);
         for bx in [0, 8] {
             let mean: f32 = (0..8)
@@ -245,7 +248,10 @@ mod tests {
         // 10×3 pads to 16×8 by repeating the edge.
         let img = random_u8(10, 3, Channels::Rgb, 2);
         let out = dct_8x8(&img, false).unwrap();
-        assert_eq!((out.width(), out.height(), out.channels()), (16, 8, Channels::Rgb));
+        assert_eq!(
+            (out.width(), out.height(), out.channels()),
+            (16, 8, Channels::Rgb)
+        );
         let back = dct_8x8(&out, true).unwrap();
         let b = back.as_f32().unwrap();
         let s = img.as_u8().unwrap();
@@ -287,7 +293,12 @@ mod tests {
 
     #[test]
     fn output_is_identical_for_any_thread_count() {
-        let pool = |n| rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
         let img = random_u8(203, 99, Channels::Rgb, 4);
         let run = || dct_8x8(&img, false).unwrap();
         assert_eq!(pool(1).install(run), pool(3).install(run));

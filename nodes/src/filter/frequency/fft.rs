@@ -20,7 +20,7 @@ use std::sync::Arc;
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
-use ocellus_engine::value::{Image, Value};
+use ocellus_engine::value::Value;
 use rayon::prelude::*;
 use rustfft::num_complex::Complex32;
 use rustfft::{Fft, FftPlanner};
@@ -125,7 +125,10 @@ impl Operator for FftOp {
         Ok(Outputs::new()
             .with("real", Value::image(planes_image(w, h, channels, re)?))
             .with("imaginary", Value::image(planes_image(w, h, channels, im)?))
-            .with("magnitude", Value::image(planes_image(w, h, channels, mag)?)))
+            .with(
+                "magnitude",
+                Value::image(planes_image(w, h, channels, mag)?),
+            ))
     }
 }
 
@@ -440,7 +443,7 @@ pub(crate) fn real_from_spectrum_half(
                     }
                     // Real DC (and Nyquist) terms: drop their imaginary parts.
                     z[0] = Complex32::new(a[0].re, bk(0).re);
-                    if width % 2 == 0 && width > 1 {
+                    if width.is_multiple_of(2) && width > 1 {
                         z[width / 2] = Complex32::new(a[width / 2].re, bk(width / 2).re);
                     }
                     row_fft.process_with_scratch(z, scratch);
@@ -502,7 +505,7 @@ pub(crate) fn transpose<T: Copy + Default + Send + Sync>(
 mod tests {
     use super::*;
     use crate::filter::test_support::randoms;
-    use ocellus_engine::value::Channels;
+    use ocellus_engine::value::{Channels, Image};
     use proptest::prelude::*;
 
     /// Direct O(N²) DFT in f64: (re, im).
@@ -585,9 +588,18 @@ mod tests {
 
     #[test]
     fn matches_the_naive_dft_for_odd_even_and_prime_sizes() {
-        for (k, &(w, h)) in [(1, 1), (1, 5), (5, 1), (2, 3), (8, 8), (13, 7), (16, 11), (17, 4)]
-            .iter()
-            .enumerate()
+        for (k, &(w, h)) in [
+            (1, 1),
+            (1, 5),
+            (5, 1),
+            (2, 3),
+            (8, 8),
+            (13, 7),
+            (16, 11),
+            (17, 4),
+        ]
+        .iter()
+        .enumerate()
         {
             let plane = random_plane(w, h, k as u64);
             let (re, im) = fft2d(&plane, w, h, false);
@@ -675,7 +687,10 @@ mod tests {
         let op = FftOp::new(FftParams { centered: true }).unwrap();
         let specs = FftOp::inputs();
         let mut out = op
-            .run(&ctx, &Inputs::new(&specs, &[Some(Value::image(img.clone()))]))
+            .run(
+                &ctx,
+                &Inputs::new(&specs, &[Some(Value::image(img.clone()))]),
+            )
             .unwrap();
         let take = |out: &mut Outputs, name: &str| match out.take(name) {
             Some(Value::Image(i)) => i,
@@ -684,9 +699,18 @@ mod tests {
         let re = take(&mut out, "real");
         let im = take(&mut out, "imaginary");
         let mag = take(&mut out, "magnitude");
-        assert_eq!((re.width(), re.height(), re.channels()), (4, 3, Channels::Rgb));
+        assert_eq!(
+            (re.width(), re.height(), re.channels()),
+            (4, 3, Channels::Rgb)
+        );
         // Magnitude at the centered DC of channel 0: samples 0, 21, 42, … of channel 0.
-        let dc: f32 = img.as_u8().unwrap().iter().step_by(3).map(|&v| f32::from(v)).sum();
+        let dc: f32 = img
+            .as_u8()
+            .unwrap()
+            .iter()
+            .step_by(3)
+            .map(|&v| f32::from(v))
+            .sum();
         let centre = (4 + 2) * 3;
         assert!((mag.as_f32().unwrap()[centre] - dc.ln_1p()).abs() < 1e-5);
         let inv = IfftOp::new(IfftParams { centered: true }).unwrap();
@@ -712,7 +736,12 @@ mod tests {
 
     #[test]
     fn output_is_identical_for_any_thread_count() {
-        let pool = |n| rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
         let (w, h) = (333, 129);
         let plane = random_plane(w, h, 8);
         let run = || {

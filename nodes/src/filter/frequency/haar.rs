@@ -106,7 +106,7 @@ pub fn haar(image: &Image, levels: u32, inverse: bool) -> Result<Image, String> 
         .checked_shl(levels)
         .filter(|_| levels <= MAX_LEVELS)
         .ok_or_else(|| format!("`levels` must be at most {MAX_LEVELS}, got {levels}"))?;
-    if w % step != 0 || h % step != 0 {
+    if !w.is_multiple_of(step) || !h.is_multiple_of(step) {
         return Err(format!(
             "{levels} Haar levels need a width and height divisible by {step}, got {w}×{h}"
         ));
@@ -128,7 +128,7 @@ pub fn haar(image: &Image, levels: u32, inverse: bool) -> Result<Image, String> 
 pub fn haar_plane(plane: &mut [f32], w: usize, h: usize, levels: u32, inverse: bool) {
     let step = 1usize << levels;
     assert!(
-        plane.len() == w * h && w % step == 0 && h % step == 0,
+        plane.len() == w * h && w.is_multiple_of(step) && h.is_multiple_of(step),
         "plane size"
     );
     if w == 0 || h == 0 {
@@ -277,14 +277,40 @@ mod tests {
         assert!(haar(&one, 1, false).is_err());
         let empty = Image::from_u8(0, 0, Channels::Gray, vec![]).unwrap();
         assert_eq!(haar(&empty, 4, true).unwrap().width(), 0);
-        assert!(Haar::new(HaarParams { levels: 0, inverse: false }).is_err());
-        assert!(Haar::new(HaarParams { levels: 31, inverse: false }).is_err());
+        assert!(
+            Haar::new(HaarParams {
+                levels: 0,
+                inverse: false
+            })
+            .is_err()
+        );
+        assert!(
+            Haar::new(HaarParams {
+                levels: 31,
+                inverse: false
+            })
+            .is_err()
+        );
         // Channels are independent: channel 1 of an RGB image equals the gray transform.
         let out = haar(&img, 2, false).unwrap();
-        let green: Vec<f32> = img.as_u8().unwrap().iter().skip(1).step_by(3).map(|&v| f32::from(v)).collect();
+        let green: Vec<f32> = img
+            .as_u8()
+            .unwrap()
+            .iter()
+            .skip(1)
+            .step_by(3)
+            .map(|&v| f32::from(v))
+            .collect();
         let mut alone = green.clone();
         haar_plane(&mut alone, 12, 8, 2, false);
-        let got: Vec<f32> = out.as_f32().unwrap().iter().skip(1).step_by(3).copied().collect();
+        let got: Vec<f32> = out
+            .as_f32()
+            .unwrap()
+            .iter()
+            .skip(1)
+            .step_by(3)
+            .copied()
+            .collect();
         assert_eq!(got, alone);
     }
 
@@ -297,13 +323,26 @@ mod tests {
             element: None,
         };
         let specs = Haar::inputs();
-        let fwd = Haar::new(HaarParams { levels: 4, inverse: false }).unwrap();
-        let inv = Haar::new(HaarParams { levels: 4, inverse: true }).unwrap();
+        let fwd = Haar::new(HaarParams {
+            levels: 4,
+            inverse: false,
+        })
+        .unwrap();
+        let inv = Haar::new(HaarParams {
+            levels: 4,
+            inverse: true,
+        })
+        .unwrap();
         let mut out = fwd
-            .run(&ctx, &Inputs::new(&specs, &[Some(Value::image(img.clone()))]))
+            .run(
+                &ctx,
+                &Inputs::new(&specs, &[Some(Value::image(img.clone()))]),
+            )
             .unwrap();
         let coefficients = out.take("image").unwrap();
-        let mut out = inv.run(&ctx, &Inputs::new(&specs, &[Some(coefficients)])).unwrap();
+        let mut out = inv
+            .run(&ctx, &Inputs::new(&specs, &[Some(coefficients)]))
+            .unwrap();
         let Some(Value::Image(back)) = out.take("image") else {
             panic!("expected an image");
         };
@@ -319,7 +358,12 @@ mod tests {
 
     #[test]
     fn output_is_identical_for_any_thread_count() {
-        let pool = |n| rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
         let img = random_u8(256, 136, Channels::Rgb, 4);
         let run = || haar(&img, 3, false).unwrap();
         assert_eq!(pool(1).install(run), pool(3).install(run));

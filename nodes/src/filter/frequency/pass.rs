@@ -213,22 +213,19 @@ pub fn filter_plane(
         })
         .collect();
     // Row u of `columns` is F(u, 0..H), u ≤ W/2, so fu = u/W.
-    columns
-        .par_chunks_mut(h)
-        .enumerate()
-        .for_each_init(
-            || vec![0.0f32; h],
-            |gains, (u, row)| {
-                let fu = u as f64 / w as f64;
-                for (g, &fv2) in gains.iter_mut().zip(&fv2) {
-                    let d = (fu * fu + fv2).sqrt();
-                    *g = (transfer(kind, pass, d, cutoff, order) * scale) as f32;
-                }
-                for (z, &g) in row.iter_mut().zip(gains.iter()) {
-                    *z *= g;
-                }
-            },
-        );
+    columns.par_chunks_mut(h).enumerate().for_each_init(
+        || vec![0.0f32; h],
+        |gains, (u, row)| {
+            let fu = u as f64 / w as f64;
+            for (g, &fv2) in gains.iter_mut().zip(&fv2) {
+                let d = (fu * fu + fv2).sqrt();
+                *g = (transfer(kind, pass, d, cutoff, order) * scale) as f32;
+            }
+            for (z, &g) in row.iter_mut().zip(gains.iter()) {
+                *z *= g;
+            }
+        },
+    );
     real_from_spectrum_half(&mut planner, columns, w, h)
 }
 
@@ -299,7 +296,15 @@ mod tests {
             assert!(gone[i].abs() < 1e-5);
         }
         // Butterworth at D = D0 halves it; Gaussian at D = D0 scales it by e^(−1/2).
-        let half = filter_plane(&cosine, w, h, FilterKind::Butterworth, PassBand::Low, 0.25, 4);
+        let half = filter_plane(
+            &cosine,
+            w,
+            h,
+            FilterKind::Butterworth,
+            PassBand::Low,
+            0.25,
+            4,
+        );
         let g = filter_plane(&cosine, w, h, FilterKind::Gaussian, PassBand::Low, 0.25, 1);
         for i in 0..w * h {
             assert!((half[i] - 0.5 * cosine[i]).abs() < 1e-5);
@@ -322,8 +327,7 @@ mod tests {
             0.0,
         );
         let cutoff = 1.0 / (2.0 * std::f64::consts::PI * sigma);
-        let out =
-            frequency_filter(&img, FilterKind::Gaussian, PassBand::Low, cutoff, 1).unwrap();
+        let out = frequency_filter(&img, FilterKind::Gaussian, PassBand::Low, cutoff, 1).unwrap();
         let diff = out
             .as_f32()
             .unwrap()
@@ -339,11 +343,22 @@ mod tests {
         let (w, h) = (12, 7);
         let img = random_u8(w, h, Channels::Rgb, 6);
         let out = frequency_filter(&img, FilterKind::Butterworth, PassBand::High, 0.1, 2).unwrap();
-        assert_eq!((out.width(), out.height(), out.channels()), (w, h, Channels::Rgb));
+        assert_eq!(
+            (out.width(), out.height(), out.channels()),
+            (w, h, Channels::Rgb)
+        );
         let planes = to_planes(&img);
         let outs = to_planes(&out);
         for c in 0..3 {
-            let alone = filter_plane(&planes[c], w, h, FilterKind::Butterworth, PassBand::High, 0.1, 2);
+            let alone = filter_plane(
+                &planes[c],
+                w,
+                h,
+                FilterKind::Butterworth,
+                PassBand::High,
+                0.1,
+                2,
+            );
             assert_eq!(alone, outs[c]);
         }
         let empty = Image::from_u16(0, 3, Channels::Rgba, vec![]).unwrap();
@@ -370,7 +385,12 @@ mod tests {
 
     #[test]
     fn output_is_identical_for_any_thread_count() {
-        let pool = |n| rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
         let img = random_u8(201, 77, Channels::Rgb, 1);
         let run = || frequency_filter(&img, FilterKind::Gaussian, PassBand::High, 0.07, 1).unwrap();
         assert_eq!(pool(1).install(run), pool(3).install(run));
