@@ -277,8 +277,13 @@ pub fn fft2d(plane: &[f32], width: usize, height: usize, centered: bool) -> (Vec
                 for (u, f) in full.iter_mut().enumerate().skip(half) {
                     *f = mirror[width - u].conj();
                 }
-                for (ox, (r, i)) in re_row.iter_mut().zip(im_row.iter_mut()).enumerate() {
-                    let f = full[(ox + sx) % width];
+                // Output column ox holds frequency (ox + sx) mod W: two contiguous runs.
+                let (tail, head) = full.split_at(sx);
+                for ((r, i), f) in re_row
+                    .iter_mut()
+                    .zip(im_row.iter_mut())
+                    .zip(head.iter().chain(tail))
+                {
                     *r = f.re;
                     *i = f.im;
                 }
@@ -311,9 +316,12 @@ pub fn ifft2d(re: &[f32], im: &[f32], width: usize, height: usize, centered: boo
         .enumerate()
         .for_each(|(y, row)| {
             let src = ((y + sy) % height) * width;
-            for (x, z) in row.iter_mut().enumerate() {
-                let i = src + (x + sx) % width;
-                *z = Complex32::new(re[i], im[i]);
+            let (re, im) = (&re[src..src + width], &im[src..src + width]);
+            // Column x reads (x + sx) mod W: two contiguous runs.
+            let shifted_re = re[sx..].iter().chain(&re[..sx]);
+            let shifted_im = im[sx..].iter().chain(&im[..sx]);
+            for ((z, &r), &i) in row.iter_mut().zip(shifted_re).zip(shifted_im) {
+                *z = Complex32::new(r, i);
             }
         });
     fft_rows(&mut spectrum, width, &planner.plan_fft_inverse(width));
@@ -379,11 +387,17 @@ pub(crate) fn real_spectrum_half(
                     }
                     row_fft.process_with_scratch(z, scratch);
                     let (spec_a, spec_b) = pair.split_at_mut(half);
-                    for (k, sa) in spec_a.iter_mut().enumerate() {
-                        let zk = z[k];
-                        let zn = z[(width - k) % width].conj();
-                        *sa = (zk + zn) * 0.5;
-                        if let Some(sb) = spec_b.get_mut(k) {
+                    // conj Z[(W − k) mod W]: Z[0] for k = 0, then Z[W − 1], Z[W − 2], …
+                    let mirrored = std::iter::once(z[0]).chain(z[1..].iter().rev().copied());
+                    if spec_b.is_empty() {
+                        for ((sa, &zk), zn) in spec_a.iter_mut().zip(z.iter()).zip(mirrored) {
+                            *sa = (zk + zn.conj()) * 0.5;
+                        }
+                    } else {
+                        let pairs = spec_a.iter_mut().zip(spec_b.iter_mut());
+                        for (((sa, sb), &zk), zn) in pairs.zip(z.iter()).zip(mirrored) {
+                            let zn = zn.conj();
+                            *sa = (zk + zn) * 0.5;
                             // (zk − zn) / 2i
                             let d = zk - zn;
                             *sb = Complex32::new(d.im * 0.5, -d.re * 0.5);

@@ -212,14 +212,31 @@ pub fn filter_plane(
             f * f
         })
         .collect();
+    let gaussian_v: Vec<f64> = fv2
+        .iter()
+        .map(|&f2| (-f2 / (2.0 * cutoff * cutoff)).exp())
+        .collect();
     // Row u of `columns` is F(u, 0..H), u ≤ W/2, so fu = u/W.
     columns.par_chunks_mut(h).enumerate().for_each_init(
         || vec![0.0f32; h],
         |gains, (u, row)| {
             let fu = u as f64 / w as f64;
-            for (g, &fv2) in gains.iter_mut().zip(&fv2) {
-                let d = (fu * fu + fv2).sqrt();
-                *g = (transfer(kind, pass, d, cutoff, order) * scale) as f32;
+            if kind == FilterKind::Gaussian {
+                // Separable: exp(−(fu² + fv²)/2D0²) = exp(−fu²/2D0²) · exp(−fv²/2D0²).
+                let gu = (-fu * fu / (2.0 * cutoff * cutoff)).exp();
+                for (g, &gv) in gains.iter_mut().zip(&gaussian_v) {
+                    let low = gu * gv;
+                    let h = match pass {
+                        PassBand::Low => low,
+                        PassBand::High => 1.0 - low,
+                    };
+                    *g = (h * scale) as f32;
+                }
+            } else {
+                for (g, &fv2) in gains.iter_mut().zip(&fv2) {
+                    let d = (fu * fu + fv2).sqrt();
+                    *g = (transfer(kind, pass, d, cutoff, order) * scale) as f32;
+                }
             }
             for (z, &g) in row.iter_mut().zip(gains.iter()) {
                 *z *= g;
