@@ -12,7 +12,7 @@
 //!   each row is transformed by the same plan and arithmetic whatever thread runs it, so the
 //!   output is bit-identical for any thread count.
 //!
-//! [`real_spectrum_half`] and [`real_from_spectrum_half`] are the building blocks that
+//! `real_spectrum_half` and `real_from_spectrum_half` are the building blocks that
 //! `filter.frequency_filter` reuses.
 
 use std::sync::Arc;

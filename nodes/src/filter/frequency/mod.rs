@@ -2,9 +2,9 @@
 //! ([`fft`]), low/high-pass filtering in the Fourier domain ([`pass`]), the 8×8 blockwise
 //! DCT of JPEG ([`dct`]) and the multi-level Haar wavelet transform ([`haar`]).
 //!
-//! There is no complex image type: a spectrum is a pair of single-channel-per-plane f32 images,
-//! `real` and `imaginary`. Every operator here works on each channel of its input on its own
-//! and outputs f32.
+//! There is no complex image type: a spectrum is a pair of f32 images, `real` and `imaginary`,
+//! with the channels of the transformed image. Every operator here works on each channel of
+//! its input on its own and outputs f32.
 
 pub mod dct;
 pub mod fft;
