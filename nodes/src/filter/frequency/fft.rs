@@ -254,41 +254,68 @@ pub fn fft2d(plane: &[f32], width: usize, height: usize, centered: bool) -> (Vec
     }
     let mut planner = FftPlanner::<f32>::new();
     let half = width / 2 + 1;
-    // Column spectra, one row per u in 0..=W/2; back to rows of the half spectrum.
+    // Column spectra, one row per u in 0..=W/2 (row u holds F(u, 0..H)).
     let columns = real_spectrum_half(&mut planner, plane, width, height);
-    let rows = transpose(&columns, half, height);
+    // fftshift: output (ox, oy) holds frequency ((ox + sx) mod W, (oy + sy) mod H).
     let (sx, sy) = if centered {
         (width - width / 2, height - height / 2)
     } else {
         (0, 0)
     };
-    re.par_chunks_mut(width)
-        .zip(im.par_chunks_mut(width))
+    // Transpose back while expanding by Hermitian symmetry, in bands of TILE output rows: for
+    // each output column, TILE consecutive samples of one column spectrum (read forwards, or
+    // backwards for the mirrored half) go down the band.
+    re.par_chunks_mut(width * TILE)
+        .zip(im.par_chunks_mut(width * TILE))
         .enumerate()
-        .for_each_init(
-            || vec![Complex32::default(); width],
-            |full, (oy, (re_row, im_row))| {
-                // Output row oy holds frequency row y (fftshift: out[k] = in[(k − ⌊n/2⌋) mod n]).
-                let y = (oy + sy) % height;
-                let own = &rows[y * half..(y + 1) * half];
-                let mirror_y = (height - y) % height;
-                let mirror = &rows[mirror_y * half..(mirror_y + 1) * half];
-                full[..half].copy_from_slice(own);
-                for (u, f) in full.iter_mut().enumerate().skip(half) {
-                    *f = mirror[width - u].conj();
+        .for_each(|(b, (re_band, im_band))| {
+            let rows = re_band.len() / width;
+            let mut ys = [0usize; TILE];
+            let mut mirrored = [0usize; TILE];
+            for (r, (y, m)) in ys
+                .iter_mut()
+                .zip(mirrored.iter_mut())
+                .enumerate()
+                .take(rows)
+            {
+                *y = (b * TILE + r + sy) % height;
+                *m = (height - *y) % height;
+            }
+            // Each block of TILE output columns is gathered into a local tile first, so the
+            // band is written row by row (no power-of-two strides on the output).
+            let mut tile_re = [[0.0f32; TILE]; TILE];
+            let mut tile_im = [[0.0f32; TILE]; TILE];
+            let mut u = sx % width;
+            for ox0 in (0..width).step_by(TILE) {
+                let cols = (width - ox0).min(TILE);
+                for c in 0..cols {
+                    if u < half {
+                        let src = &columns[u * height..(u + 1) * height];
+                        for (r, &y) in ys[..rows].iter().enumerate() {
+                            let f = src[y];
+                            tile_re[r][c] = f.re;
+                            tile_im[r][c] = f.im;
+                        }
+                    } else {
+                        let src = &columns[(width - u) * height..(width - u + 1) * height];
+                        for (r, &y) in mirrored[..rows].iter().enumerate() {
+                            let f = src[y];
+                            tile_re[r][c] = f.re;
+                            tile_im[r][c] = -f.im;
+                        }
+                    }
+                    u += 1;
+                    if u == width {
+                        u = 0;
+                    }
                 }
-                // Output column ox holds frequency (ox + sx) mod W: two contiguous runs.
-                let (tail, head) = full.split_at(sx);
-                for ((r, i), f) in re_row
-                    .iter_mut()
-                    .zip(im_row.iter_mut())
-                    .zip(head.iter().chain(tail))
-                {
-                    *r = f.re;
-                    *i = f.im;
+                for r in 0..rows {
+                    let at = r * width + ox0;
+                    re_band[at..at + cols].copy_from_slice(&tile_re[r][..cols]);
+                    im_band[at..at + cols].copy_from_slice(&tile_im[r][..cols]);
                 }
-            },
-        );
+            }
+        });
     (re, im)
 }
 
@@ -336,13 +363,17 @@ pub fn ifft2d(re: &[f32], im: &[f32], width: usize, height: usize, centered: boo
         .for_each(|(b, band)| {
             let y0 = b * TILE;
             let rows = band.len() / width;
+            let mut tile = [[0.0f32; TILE]; TILE];
             for x0 in (0..width).step_by(TILE) {
-                let x1 = (x0 + TILE).min(width);
-                for r in 0..rows {
-                    let dst = &mut band[r * width + x0..r * width + x1];
-                    for (k, d) in dst.iter_mut().enumerate() {
-                        *d = columns[(x0 + k) * height + y0 + r].re * scale;
+                let cols = (width - x0).min(TILE);
+                for k in 0..cols {
+                    let src = &columns[(x0 + k) * height + y0..(x0 + k) * height + y0 + rows];
+                    for (r, z) in src.iter().enumerate() {
+                        tile[r][k] = z.re * scale;
                     }
+                }
+                for (r, t) in tile.iter().enumerate().take(rows) {
+                    band[r * width + x0..r * width + x0 + cols].copy_from_slice(&t[..cols]);
                 }
             }
         });
@@ -502,12 +533,19 @@ pub(crate) fn transpose<T: Copy + Default + Send + Sync>(
         .for_each(|(b, band)| {
             let c0 = b * TILE;
             let band_cols = band.len() / rows;
+            // Through a local tile: rows of `src` are read and rows of `dst` written
+            // contiguously (no power-of-two strides).
+            let mut tile = [[T::default(); TILE]; TILE];
             for r0 in (0..rows).step_by(TILE) {
-                let r1 = (r0 + TILE).min(rows);
+                let tile_rows = (rows - r0).min(TILE);
+                for (k, t) in tile.iter_mut().enumerate().take(tile_rows) {
+                    let start = (r0 + k) * cols + c0;
+                    t[..band_cols].copy_from_slice(&src[start..start + band_cols]);
+                }
                 for c in 0..band_cols {
-                    let out = &mut band[c * rows + r0..c * rows + r1];
-                    for (k, o) in out.iter_mut().enumerate() {
-                        *o = src[(r0 + k) * cols + c0 + c];
+                    let out = &mut band[c * rows + r0..c * rows + r0 + tile_rows];
+                    for (o, t) in out.iter_mut().zip(&tile) {
+                        *o = t[c];
                     }
                 }
             }
