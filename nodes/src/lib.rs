@@ -34,6 +34,12 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::kuwahara::Kuwahara>()?;
     registry.register::<filter::rank::MinFilter>()?;
     registry.register::<filter::rank::MaxFilter>()?;
+    registry.register::<filter::frequency::fft::FftOp>()?;
+    registry.register::<filter::frequency::fft::IfftOp>()?;
+    registry.register::<filter::frequency::pass::FrequencyFilter>()?;
+    registry.register::<filter::frequency::dct::Dct>()?;
+    registry.register::<filter::frequency::haar::Haar>()?;
+    registry.register::<filter::noise::Noise>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;

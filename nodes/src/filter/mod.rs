@@ -6,12 +6,14 @@ pub mod box_filter;
 pub mod color;
 pub mod composite;
 pub mod convert;
+pub mod frequency;
 pub mod gaussian;
 pub mod grayscale;
 pub mod kuwahara;
 pub mod median;
 pub mod morphology;
 pub mod rank;
+pub mod noise;
 pub mod sobel;
 
 #[cfg(test)]
