@@ -49,6 +49,10 @@ pub const MAX_ITERATIONS: u32 = 255;
 /// van Herk / Gil-Werman.
 pub const DIRECT_MAX_TAPS: usize = 8;
 
+/// Windows up to this many samples along rows of few channels use doubling (see [`doubling`]);
+/// longer ones van Herk / Gil-Werman.
+pub const DOUBLING_MAX_TAPS: usize = 64;
+
 /// Strides from which the van Herk recurrences run over whole slices (rows) instead of single
 /// samples.
 const WIDE_STRIDE: usize = 16;
@@ -1147,6 +1151,8 @@ fn window_extremum<M: Extremum, T: Sample>(
     }
     if len <= DIRECT_MAX_TAPS {
         direct::<M, T>(src, stride, len, out, combine);
+    } else if stride < WIDE_STRIDE && len <= DOUBLING_MAX_TAPS {
+        doubling::<M, T>(&src[..span], stride, len, out, combine, scratch);
     } else {
         van_herk::<M, T>(&src[..span], stride, len, out, combine, scratch);
     }
@@ -1196,6 +1202,47 @@ fn direct<M: Extremum, T: Sample>(
     if k < len {
         for (o, &a) in out.iter_mut().zip(tap(k)) {
             *o = M::pick(*o, a);
+        }
+    }
+}
+
+/// The extremum over windows of `len` by doubling: windows of 2, 4, … p samples (p the largest
+/// power of two ≤ `len`) each from two of the previous ones, then
+/// `out[i] = op(w_p[i], w_p[i + (len − p)·stride])`. ⌈log₂ len⌉ vectorized passes, which along
+/// rows of few channels beats the scalar van Herk recurrences for moderate lengths.
+fn doubling<M: Extremum, T: Sample>(
+    src: &[T],
+    stride: usize,
+    len: usize,
+    out: &mut [T],
+    combine: bool,
+    scratch: &mut Scratch<T>,
+) {
+    let Scratch { prefix: a, suffix: b } = scratch;
+    a.clear();
+    a.extend_from_slice(src);
+    let mut window = 1;
+    while window * 2 <= len {
+        let d = window * stride;
+        let valid = a.len() - d;
+        b.clear();
+        b.extend(a[..valid].iter().zip(&a[d..]).map(|(&x, &y)| M::pick(x, y)));
+        std::mem::swap(a, b);
+        window *= 2;
+    }
+    let rest = (len - window) * stride;
+    let n = out.len();
+    if a.len() < n + rest {
+        return;
+    }
+    let (head, tail) = (&a[..n], &a[rest..rest + n]);
+    if combine {
+        for ((o, &x), &y) in out.iter_mut().zip(head).zip(tail) {
+            *o = M::pick(*o, M::pick(x, y));
+        }
+    } else {
+        for ((o, &x), &y) in out.iter_mut().zip(head).zip(tail) {
+            *o = M::pick(x, y);
         }
     }
 }
@@ -1566,7 +1613,7 @@ mod tests {
             .map(|r| (r * 1000.0) as u16)
             .collect();
         for stride in 1..5 {
-            for len in 1..40 {
+            for len in 1..70 {
                 let n = ((src.len() - (len - 1) * stride) / stride) * stride;
                 let mut a = vec![0; n];
                 let mut b = vec![0; n];
@@ -1581,6 +1628,16 @@ mod tests {
                 );
                 direct::<Min, u16>(&src, stride, len, &mut b, false);
                 assert_eq!(a, b, "stride {stride} len {len}");
+                let mut c = vec![0; n];
+                doubling::<Min, u16>(
+                    &src[..span],
+                    stride,
+                    len,
+                    &mut c,
+                    false,
+                    &mut Scratch::default(),
+                );
+                assert_eq!(c, b, "doubling stride {stride} len {len}");
             }
         }
     }
