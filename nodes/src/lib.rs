@@ -22,6 +22,10 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::morphology::Erode>()?;
     registry.register::<filter::morphology::Dilate>()?;
     registry.register::<filter::morphology::Morphology>()?;
+    registry.register::<filter::hit_or_miss::HitOrMiss>()?;
+    registry.register::<filter::hit_or_miss::Thinning>()?;
+    registry.register::<filter::hit_or_miss::Thickening>()?;
+    registry.register::<filter::hit_or_miss::Skeleton>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<io::read_image::ReadImage>()?;

@@ -4,6 +4,7 @@ pub mod border;
 pub mod box_filter;
 pub mod gaussian;
 pub mod grayscale;
+pub mod hit_or_miss;
 pub mod morphology;
 pub mod sobel;
 

@@ -263,7 +263,12 @@ impl StructuringElement {
         let (w, h) = (self.width, self.height);
         let mask: Vec<Vec<u8>> = (0..h)
             .rev()
-            .map(|y| (0..w).rev().map(|x| u8::from(self.contains(x, y))).collect())
+            .map(|y| {
+                (0..w)
+                    .rev()
+                    .map(|x| u8::from(self.contains(x, y)))
+                    .collect()
+            })
             .collect();
         StructuringElement {
             width: w,
@@ -309,9 +314,10 @@ impl StructuringElement {
 
     /// Whether the element holds the box cell `(x, y)`.
     pub fn contains(&self, x: usize, y: usize) -> bool {
-        self.runs
-            .get(y)
-            .is_some_and(|runs| runs.iter().any(|&(first, len)| (first..first + len).contains(&x)))
+        self.runs.get(y).is_some_and(|runs| {
+            runs.iter()
+                .any(|&(first, len)| (first..first + len).contains(&x))
+        })
     }
 
     /// True when every cell of the box is set.
@@ -1084,21 +1090,22 @@ fn fused_bands<A: Extremum, B: Extremum, T: Sample>(
             pass.source_range(y0, y1).unwrap_or((y0, y0))
         })
         .collect();
-    if ranges.iter().any(|&(lo, hi)| hi - lo > band_rows + 2 * pass.kh) {
+    if ranges
+        .iter()
+        .any(|&(lo, hi)| hi - lo > band_rows + 2 * pass.kh)
+    {
         return None;
     }
     let mut dst = vec![T::default(); src.len()];
-    dst.par_chunks_mut(band_rows * n)
-        .enumerate()
-        .for_each_init(
-            || (BandBuffers::default(), Vec::new()),
-            |(buffers, stage), (band, out)| {
-                let (lo, hi) = ranges[band];
-                stage.resize((hi - lo) * n, T::default());
-                pass.run_rows::<A, T>(src, 0, lo, &mut stage[..(hi - lo) * n], buffers);
-                pass.run_rows::<B, T>(&stage[..(hi - lo) * n], lo, band * band_rows, out, buffers);
-            },
-        );
+    dst.par_chunks_mut(band_rows * n).enumerate().for_each_init(
+        || (BandBuffers::default(), Vec::new()),
+        |(buffers, stage), (band, out)| {
+            let (lo, hi) = ranges[band];
+            stage.resize((hi - lo) * n, T::default());
+            pass.run_rows::<A, T>(src, 0, lo, &mut stage[..(hi - lo) * n], buffers);
+            pass.run_rows::<B, T>(&stage[..(hi - lo) * n], lo, band * band_rows, out, buffers);
+        },
+    );
     Some(dst)
 }
 
@@ -1218,7 +1225,10 @@ fn doubling<M: Extremum, T: Sample>(
     combine: bool,
     scratch: &mut Scratch<T>,
 ) {
-    let Scratch { prefix: a, suffix: b } = scratch;
+    let Scratch {
+        prefix: a,
+        suffix: b,
+    } = scratch;
     a.clear();
     a.extend_from_slice(src);
     let mut window = 1;
