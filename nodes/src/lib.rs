@@ -27,6 +27,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::hit_or_miss::Thickening>()?;
     registry.register::<filter::hit_or_miss::Skeleton>()?;
     registry.register::<filter::distance::DistanceTransform>()?;
+    registry.register::<filter::flow::Lic>()?;
+    registry.register::<filter::flow::EdgeTangentFlow>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<io::read_image::ReadImage>()?;

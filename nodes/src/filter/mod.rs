@@ -3,6 +3,7 @@
 pub mod border;
 pub mod box_filter;
 pub mod distance;
+pub mod flow;
 pub mod gaussian;
 pub mod grayscale;
 pub mod hit_or_miss;
