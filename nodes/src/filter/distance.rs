@@ -202,8 +202,8 @@ fn squared_row(v: &[f32], out: &mut [f32], scratch: &mut RowScratch) {
     roots.clear();
     bounds.clear();
     let f = |q: usize| f64::from(v[q]) * f64::from(v[q]);
-    for q in 0..v.len() {
-        if !v[q].is_finite() {
+    for (q, vq) in v.iter().enumerate() {
+        if !vq.is_finite() {
             continue;
         }
         let fq = f(q) + (q * q) as f64;
@@ -327,19 +327,31 @@ mod tests {
     fn matches_opencv_precise() {
         // cv2.distanceTransform(img, DIST_L2, DIST_MASK_PRECISE), OpenCV 5.0, first three rows,
         // for the 12×9 image with zeros where (5x + 3y) mod 11 = 0.
+        const R2: f32 = std::f32::consts::SQRT_2;
         let (w, h) = (12, 9);
         let zero: Vec<bool> = (0..w * h)
             .map(|i| (5 * (i % w) + 3 * (i / w)) % 11 == 0)
             .collect();
         let expected = [
             [
-                0.0, 1.0, 2.0, 2.82843, 2.23607, 1.41421, 1.0, 1.41421, 2.23607, 2.0, 1.0, 0.0,
+                0.0,
+                1.0,
+                2.0,
+                2.0 * R2,
+                2.23607,
+                R2,
+                1.0,
+                R2,
+                2.23607,
+                2.0,
+                1.0,
+                0.0,
             ],
             [
-                1.0, 1.0, 1.41421, 2.23607, 2.0, 1.0, 0.0, 1.0, 2.0, 2.23607, 1.41421, 1.0,
+                1.0, 1.0, R2, 2.23607, 2.0, 1.0, 0.0, 1.0, 2.0, 2.23607, R2, 1.0,
             ],
             [
-                1.0, 0.0, 1.0, 2.0, 2.23607, 1.41421, 1.0, 1.0, 1.41421, 2.23607, 2.23607, 2.0,
+                1.0, 0.0, 1.0, 2.0, 2.23607, R2, 1.0, 1.0, R2, 2.23607, 2.23607, 2.0,
             ],
         ];
         let got = distance_of_sites(&zero, w, h, Metric::Euclidean);

@@ -133,7 +133,7 @@ pub fn lic(vx: &Plane, vy: &Plane, texture: &Plane, settings: LicSettings) -> Pl
         }
         let (mut dx, mut dy) = (vx.bilinear(x, y), vy.bilinear(x, y));
         let norm = (dx * dx + dy * dy).sqrt();
-        if !(norm > 1e-12) || !norm.is_finite() {
+        if norm.is_nan() || norm <= 1e-12 || !norm.is_finite() {
             return None;
         }
         dx /= norm;

@@ -242,6 +242,7 @@ fn golay_tables() -> [[bool; 256]; 8] {
 /// Zhang–Suen removal tables for the two sub-iterations.
 fn zhang_suen_tables() -> [[bool; 256]; 2] {
     let mut tables = [[false; 256]; 2];
+    #[allow(clippy::needless_range_loop)] // `code` is the neighbour code, not just an index.
     for code in 0..256usize {
         let p = |i: usize| (code >> i) & 1;
         // Zhang & Suen's P2..P9 are the ring from the top, clockwise.
