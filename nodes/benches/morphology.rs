@@ -78,5 +78,24 @@ fn erode_sizes(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, erode_sizes, open);
+fn distance(c: &mut Criterion) {
+    use ocellus_nodes::filter::distance::{Metric, distance_transform};
+    let gray = card(Channels::Gray);
+    let Some(data) = gray.as_u8() else {
+        panic!("the card is u8")
+    };
+    let binary: Vec<u8> = data
+        .iter()
+        .map(|&v| if v > 100 { 255 } else { 0 })
+        .collect();
+    let mask = match Image::from_u8(1920, 1080, Channels::Gray, binary) {
+        Ok(image) => image,
+        Err(e) => panic!("mask: {e}"),
+    };
+    c.bench_function("distance_transform 1080p euclidean", |b| {
+        b.iter(|| distance_transform(black_box(&mask), Metric::Euclidean))
+    });
+}
+
+criterion_group!(benches, erode_sizes, open, distance);
 criterion_main!(benches);
