@@ -65,8 +65,10 @@ impl Plane {
     #[inline]
     fn bilinear(&self, x: f32, y: f32) -> f32 {
         let (w, h) = (self.width, self.height);
-        let x0 = (x.floor().max(0.0) as usize).min(w - 1);
-        let y0 = (y.floor().max(0.0) as usize).min(h - 1);
+        // Truncation is the floor for x, y ≥ 0 (`as` saturates negatives and NaN to 0) and,
+        // unlike `floor`, needs no library call on baseline x86-64.
+        let x0 = (x as usize).min(w - 1);
+        let y0 = (y as usize).min(h - 1);
         let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
         let (fx, fy) = (x - x0 as f32, y - y0 as f32);
         let d = &self.data;
@@ -149,41 +151,71 @@ pub fn lic(vx: &Plane, vy: &Plane, texture: &Plane, settings: LicSettings) -> Pl
         }
         Some((dx, dy))
     };
+    // Streamlines are serial chains of dependent steps; tracing LANES pixels in lockstep lets
+    // their independent chains overlap. Each lane's arithmetic is the per-pixel one.
+    const LANES: usize = 8;
     out.par_chunks_mut(BAND_ROWS * w)
         .enumerate()
         .for_each(|(band, rows)| {
-            for (i, o) in rows.iter_mut().enumerate() {
-                let (px, py) = ((i % w) as f32, (band * BAND_ROWS + i / w) as f32);
-                let mut sum = f64::from(texture.data[band * BAND_ROWS * w + i]);
-                let mut count = 1u32;
-                let start = direction(px, py, (0.0, 0.0), 1.0);
+            let base = band * BAND_ROWS * w;
+            for (chunk, outs) in rows.chunks_mut(LANES).enumerate() {
+                let lanes = outs.len();
+                let first = base + chunk * LANES;
+                let mut sum = [0f64; LANES];
+                let mut count = [1u32; LANES];
+                let mut origin = [(0f32, 0f32); LANES];
+                let mut start = [None; LANES];
+                for l in 0..lanes {
+                    let i = first + l;
+                    origin[l] = ((i % w) as f32, (i / w) as f32);
+                    sum[l] = f64::from(texture.data[i]);
+                    start[l] = direction(origin[l].0, origin[l].1, (0.0, 0.0), 1.0);
+                }
                 for sign in [1.0f32, -1.0] {
-                    let Some((sx, sy)) = start else { break };
-                    let mut previous = (sign * sx, sign * sy);
-                    let (mut x, mut y) = (px, py);
+                    let mut alive = [false; LANES];
+                    let mut at = origin;
+                    let mut previous = [(0f32, 0f32); LANES];
+                    for l in 0..lanes {
+                        if let Some((sx, sy)) = start[l] {
+                            alive[l] = true;
+                            previous[l] = (sign * sx, sign * sy);
+                        }
+                    }
                     for _ in 0..steps {
-                        // Midpoint rule on the unit direction field.
-                        let Some(d0) = direction(x, y, previous, sign) else {
-                            break;
-                        };
-                        let (mx, my) = (x + 0.5 * hstep * d0.0, y + 0.5 * hstep * d0.1);
-                        let Some(d1) = direction(mx, my, d0, sign) else {
-                            break;
-                        };
-                        let (nx, ny) = (x + hstep * d1.0, y + hstep * d1.1);
-                        if !(0.0..=(w - 1) as f32).contains(&nx)
-                            || !(0.0..=(h - 1) as f32).contains(&ny)
-                        {
+                        let mut any = false;
+                        for l in 0..lanes {
+                            if !alive[l] {
+                                continue;
+                            }
+                            let (x, y) = at[l];
+                            // Midpoint rule on the unit direction field.
+                            let step = direction(x, y, previous[l], sign).and_then(|d0| {
+                                let (mx, my) = (x + 0.5 * hstep * d0.0, y + 0.5 * hstep * d0.1);
+                                direction(mx, my, d0, sign)
+                            });
+                            let next = step.map(|d1| (d1, (x + hstep * d1.0, y + hstep * d1.1)));
+                            match next {
+                                Some((d1, (nx, ny)))
+                                    if (0.0..=(w - 1) as f32).contains(&nx)
+                                        && (0.0..=(h - 1) as f32).contains(&ny) =>
+                                {
+                                    at[l] = (nx, ny);
+                                    previous[l] = d1;
+                                    sum[l] += f64::from(texture.bilinear(nx, ny));
+                                    count[l] += 1;
+                                    any = true;
+                                }
+                                _ => alive[l] = false,
+                            }
+                        }
+                        if !any {
                             break;
                         }
-                        x = nx;
-                        y = ny;
-                        previous = d1;
-                        sum += f64::from(texture.bilinear(x, y));
-                        count += 1;
                     }
                 }
-                *o = (sum / f64::from(count)) as f32;
+                for (l, o) in outs.iter_mut().enumerate() {
+                    *o = (sum[l] / f64::from(count[l])) as f32;
+                }
             }
         });
     Plane {
