@@ -13,11 +13,15 @@ use ocellus_nodes::filter::morphology::{
 
 /// A test card: edges, gratings and ramps, so the data is not trivially compressible.
 fn card(channels: Channels) -> Image {
+    card_sized(channels, 1920, 1080)
+}
+
+fn card_sized(channels: Channels, width: usize, height: usize) -> Image {
     let format = PixelFormat {
         channels,
         depth: Depth::U8,
     };
-    match render(Drawing::TestCard { square: 32 }, 1920, 1080, format) {
+    match render(Drawing::TestCard { square: 32 }, width, height, format) {
         Ok(image) => image,
         Err(e) => panic!("rendering the benchmark input: {e}"),
     }
@@ -36,6 +40,7 @@ fn open(c: &mut Criterion) {
     for (name, image) in [
         ("1080p gray u8", card(Channels::Gray)),
         ("1080p rgb u8", card(Channels::Rgb)),
+        ("2160p gray u8", card_sized(Channels::Gray, 3840, 2160)),
     ] {
         group.bench_function(name, |b| {
             b.iter(|| {
@@ -73,5 +78,24 @@ fn erode_sizes(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, erode_sizes, open);
+fn distance(c: &mut Criterion) {
+    use ocellus_nodes::filter::distance::{Metric, distance_transform};
+    let gray = card(Channels::Gray);
+    let Some(data) = gray.as_u8() else {
+        panic!("the card is u8")
+    };
+    let binary: Vec<u8> = data
+        .iter()
+        .map(|&v| if v > 100 { 255 } else { 0 })
+        .collect();
+    let mask = match Image::from_u8(1920, 1080, Channels::Gray, binary) {
+        Ok(image) => image,
+        Err(e) => panic!("mask: {e}"),
+    };
+    c.bench_function("distance_transform 1080p euclidean", |b| {
+        b.iter(|| distance_transform(black_box(&mask), Metric::Euclidean))
+    });
+}
+
+criterion_group!(benches, erode_sizes, open, distance);
 criterion_main!(benches);

@@ -40,6 +40,13 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::frequency::dct::Dct>()?;
     registry.register::<filter::frequency::haar::Haar>()?;
     registry.register::<filter::noise::Noise>()?;
+    registry.register::<filter::hit_or_miss::HitOrMiss>()?;
+    registry.register::<filter::hit_or_miss::Thinning>()?;
+    registry.register::<filter::hit_or_miss::Thickening>()?;
+    registry.register::<filter::hit_or_miss::Skeleton>()?;
+    registry.register::<filter::distance::DistanceTransform>()?;
+    registry.register::<filter::flow::Lic>()?;
+    registry.register::<filter::flow::EdgeTangentFlow>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;

@@ -3,14 +3,14 @@
 //!
 //! Erosion is the minimum and dilation the maximum of the samples under a structuring element
 //! placed with its anchor on the output pixel: `erode(x, y) = min { in(x + i − ax, y + j − ay) :
-//! (i, j) ∈ element }`, with anchor `(ax, ay) = (⌊w/2⌋, ⌊h/2⌋)`. Dilation uses the same
+//! (i, j) ∈ element }`, with anchor `(ax, ay)`, by default `(⌊w/2⌋, ⌊h/2⌋)`. Dilation uses the same
 //! element and anchor, not its reflection, exactly as OpenCV.
 //!
 //! How it runs:
-//! - Every element here has one horizontal run of ones per row (rectangles, crosses, ellipses).
-//!   Rows with the same run are grouped, and each group is widened to the longest interval of
-//!   consecutive element rows whose runs contain that run (adding such rows cannot change a
-//!   minimum over the group). A rectangle is one group; a cross is two (its full middle row and
+//! - Each row of an element is a few horizontal runs of ones (one for rectangles, crosses and
+//!   ellipses; any number for a custom mask). Rows holding the same run are grouped, and each
+//!   group is widened to the longest interval of consecutive element rows whose runs contain
+//!   that run (adding such rows cannot change a minimum over the group). A rectangle is one group; a cross is two (its full middle row and
 //!   its full column); an ellipse is one nested rectangle per distinct row width.
 //! - A group `(run, rows j0..j1)` is a separable window: the 1-D extremum of each padded source
 //!   row over the run, then the 1-D extremum of those results over `j1 − j0` rows. The output is
@@ -48,6 +48,10 @@ pub const MAX_ITERATIONS: u32 = 255;
 /// Windows up to this many samples take the extremum of shifted slices directly; longer ones use
 /// van Herk / Gil-Werman.
 pub const DIRECT_MAX_TAPS: usize = 8;
+
+/// Windows up to this many samples along rows of few channels use doubling (see [`doubling`]);
+/// longer ones van Herk / Gil-Werman.
+pub const DOUBLING_MAX_TAPS: usize = 64;
 
 /// Strides from which the van Herk recurrences run over whole slices (rows) instead of single
 /// samples.
@@ -123,8 +127,9 @@ pub struct StructuringElement {
     height: usize,
     anchor_x: usize,
     anchor_y: usize,
-    /// Per row: `(first column, length)` of its ones, or `None` for an empty row.
-    runs: Vec<Option<(usize, usize)>>,
+    /// Per row: `(first column, length)` of each maximal run of ones, left to right (empty for
+    /// a row without ones).
+    runs: Vec<Vec<(usize, usize)>>,
 }
 
 impl StructuringElement {
@@ -140,9 +145,9 @@ impl StructuringElement {
         let (c, r) = (width / 2, height / 2);
         let runs = (0..height)
             .map(|i| match shape {
-                Shape::Rect => Some((0, width)),
-                Shape::Cross if i == r => Some((0, width)),
-                Shape::Cross => Some((c, 1)),
+                Shape::Rect => vec![(0, width)],
+                Shape::Cross if i == r => vec![(0, width)],
+                Shape::Cross => vec![(c, 1)],
                 Shape::Ellipse => {
                     let dy = i as f64 - r as f64;
                     // OpenCV takes the ratio as 0 for a one-row box: only the centre pixel.
@@ -154,7 +159,7 @@ impl StructuringElement {
                     let dx = (c as f64 * fraction.sqrt()).round() as usize;
                     let first = c.saturating_sub(dx);
                     let end = (c + dx + 1).min(width);
-                    Some((first, end - first))
+                    vec![(first, end - first)]
                 }
             })
             .collect();
@@ -179,8 +184,117 @@ impl StructuringElement {
             height,
             anchor_x: anchor_x.min(width.saturating_sub(1)),
             anchor_y: anchor_y.min(height.saturating_sub(1)),
-            runs: vec![Some((0, width)); height],
+            runs: vec![vec![(0, width)]; height],
         }
+    }
+
+    /// Any element: `mask[y][x]` nonzero marks the cell `(x, y)` of a box as wide as the longest
+    /// row (shorter rows are padded with zeros), anchored at `anchor` or at the box centre
+    /// `(⌊width/2⌋, ⌊height/2⌋)`. Errors on an empty mask, a mask without ones, a box side over
+    /// [`MAX_KSIZE`] or an anchor outside the box.
+    pub fn from_mask(
+        mask: &[Vec<u8>],
+        anchor: Option<(usize, usize)>,
+    ) -> Result<StructuringElement, String> {
+        let height = mask.len();
+        let width = mask.iter().map(Vec::len).max().unwrap_or(0);
+        if width == 0 || height == 0 {
+            return Err("the structuring element mask is empty".into());
+        }
+        let max = MAX_KSIZE as usize;
+        if width > max || height > max {
+            return Err(format!(
+                "the structuring element mask is {width}×{height}; each side must be at most {max}"
+            ));
+        }
+        let runs: Vec<Vec<(usize, usize)>> = mask
+            .iter()
+            .map(|row| {
+                let mut runs = Vec::new();
+                let mut x = 0;
+                while x < row.len() {
+                    if row[x] == 0 {
+                        x += 1;
+                        continue;
+                    }
+                    let start = x;
+                    while x < row.len() && row[x] != 0 {
+                        x += 1;
+                    }
+                    runs.push((start, x - start));
+                }
+                runs
+            })
+            .collect();
+        if runs.iter().all(Vec::is_empty) {
+            return Err("the structuring element mask has no nonzero cell".into());
+        }
+        let (anchor_x, anchor_y) = anchor.unwrap_or((width / 2, height / 2));
+        if anchor_x >= width || anchor_y >= height {
+            return Err(format!(
+                "anchor ({anchor_x}, {anchor_y}) lies outside the {width}×{height} element"
+            ));
+        }
+        Ok(StructuringElement {
+            width,
+            height,
+            anchor_x,
+            anchor_y,
+            runs,
+        })
+    }
+
+    /// The same element with its anchor moved to `(x, y)`; errors when outside the box.
+    pub fn with_anchor(mut self, x: usize, y: usize) -> Result<StructuringElement, String> {
+        if x >= self.width || y >= self.height {
+            return Err(format!(
+                "anchor ({x}, {y}) lies outside the {}×{} element",
+                self.width, self.height
+            ));
+        }
+        self.anchor_x = x;
+        self.anchor_y = y;
+        Ok(self)
+    }
+
+    /// The element reflected through its anchor (cells `(x, y)` → `(w − 1 − x, h − 1 − y)`, anchor
+    /// `(w − 1 − ax, h − 1 − ay)`).
+    pub fn reflected(&self) -> StructuringElement {
+        let (w, h) = (self.width, self.height);
+        let mask: Vec<Vec<u8>> = (0..h)
+            .rev()
+            .map(|y| {
+                (0..w)
+                    .rev()
+                    .map(|x| u8::from(self.contains(x, y)))
+                    .collect()
+            })
+            .collect();
+        StructuringElement {
+            width: w,
+            height: h,
+            anchor_x: w - 1 - self.anchor_x,
+            anchor_y: h - 1 - self.anchor_y,
+            runs: Self::from_mask(&mask, None)
+                .map(|e| e.runs)
+                .unwrap_or_else(|_| self.runs.clone()),
+        }
+    }
+
+    /// The offsets `(dx, dy)` of the element's cells relative to the anchor, row by row.
+    pub fn offsets(&self) -> Vec<(isize, isize)> {
+        let mut out = Vec::new();
+        for (y, runs) in self.runs.iter().enumerate() {
+            for &(first, len) in runs {
+                for x in first..first + len {
+                    out.push((
+                        x as isize - self.anchor_x as isize,
+                        y as isize - self.anchor_y as isize,
+                    ));
+                }
+            }
+        }
+        out
     }
 
     /// Box width.
@@ -200,17 +314,24 @@ impl StructuringElement {
 
     /// Whether the element holds the box cell `(x, y)`.
     pub fn contains(&self, x: usize, y: usize) -> bool {
-        matches!(self.runs.get(y), Some(Some((first, len))) if (*first..first + len).contains(&x))
+        self.runs.get(y).is_some_and(|runs| {
+            runs.iter()
+                .any(|&(first, len)| (first..first + len).contains(&x))
+        })
     }
 
     /// True when every cell of the box is set.
     pub fn is_full(&self) -> bool {
-        self.runs.iter().all(|run| *run == Some((0, self.width)))
+        self.runs.iter().all(|runs| runs[..] == [(0, self.width)])
     }
 
     /// The separable groups: `(run, first row, rows)`, see the module docs.
     fn groups(&self) -> Vec<((usize, usize), usize, usize)> {
-        let covers = |row: usize, (first, len): (usize, usize)| matches!(self.runs[row], Some((f, l)) if f <= first && first + len <= f + l);
+        let covers = |row: usize, (first, len): (usize, usize)| {
+            self.runs[row]
+                .iter()
+                .any(|&(f, l)| f <= first && first + len <= f + l)
+        };
         let mut distinct: Vec<(usize, usize)> = self.runs.iter().flatten().copied().collect();
         distinct.sort_unstable();
         distinct.dedup();
@@ -226,7 +347,7 @@ impl StructuringElement {
                 while j < self.height && covers(j, run) {
                     j += 1;
                 }
-                if (start..j).any(|k| self.runs[k] == Some(run)) {
+                if (start..j).any(|k| self.runs[k].contains(&run)) {
                     groups.push((run, start, j - start));
                 }
             }
@@ -321,9 +442,16 @@ params! {
     pub struct MorphParams {
         /// Structuring element shape: "rect", "cross" or "ellipse".
         shape: Shape = Shape::Rect,
-        /// Structuring element size `[width, height]`, each 1..=1023; the anchor is the centre
-        /// `(⌊width/2⌋, ⌊height/2⌋)`.
+        /// Structuring element size `[width, height]`, each 1..=1023 (ignored when `element`
+        /// is given).
         ksize: [u32; 2] = [3, 3] => [min = 1, max = 1023, unit = "px"],
+        /// Custom structuring element, rows of cells (nonzero = part of the element), e.g.
+        /// `[[0, 1, 0], [1, 1, 1]]`; shorter rows are padded with zeros. Default `[]`: use
+        /// `shape` and `ksize`; when given it replaces them.
+        element: Vec<Vec<u8>> = Vec::new(),
+        /// Anchor `[x, y]` inside the element box, px; default none: the centre
+        /// `(⌊width/2⌋, ⌊height/2⌋)`.
+        anchor: Option<[u32; 2]> = None,
         /// Times the operation is applied, 1..=255.
         iterations: u32 = 1 => [min = 1, max = 255],
         /// How pixels outside the image are read; "neutral" lets them never win.
@@ -338,9 +466,16 @@ params! {
         operation: Operation = Operation::Open,
         /// Structuring element shape: "rect", "cross" or "ellipse".
         shape: Shape = Shape::Rect,
-        /// Structuring element size `[width, height]`, each 1..=1023; the anchor is the centre
-        /// `(⌊width/2⌋, ⌊height/2⌋)`.
+        /// Structuring element size `[width, height]`, each 1..=1023 (ignored when `element`
+        /// is given).
         ksize: [u32; 2] = [3, 3] => [min = 1, max = 1023, unit = "px"],
+        /// Custom structuring element, rows of cells (nonzero = part of the element), e.g.
+        /// `[[0, 1, 0], [1, 1, 1]]`; shorter rows are padded with zeros. Default `[]`: use
+        /// `shape` and `ksize`; when given it replaces them.
+        element: Vec<Vec<u8>> = Vec::new(),
+        /// Anchor `[x, y]` inside the element box, px; default none: the centre
+        /// `(⌊width/2⌋, ⌊height/2⌋)`.
+        anchor: Option<[u32; 2]> = None,
         /// Times each erosion and dilation inside the operation is applied, 1..=255.
         iterations: u32 = 1 => [min = 1, max = 255],
         /// How pixels outside the image are read; "neutral" lets them never win.
@@ -360,9 +495,25 @@ impl Setup {
     fn new(
         shape: Shape,
         ksize: [u32; 2],
+        element: &[Vec<u8>],
+        anchor: Option<[u32; 2]>,
         iterations: u32,
         border: MorphBorder,
     ) -> Result<Setup, String> {
+        if !(1..=MAX_ITERATIONS).contains(&iterations) {
+            return Err(format!(
+                "`iterations` must be between 1 and {MAX_ITERATIONS}, got {iterations}"
+            ));
+        }
+        let anchor = anchor.map(|[x, y]| (x as usize, y as usize));
+        if !element.is_empty() {
+            return Ok(Setup {
+                element: StructuringElement::from_mask(element, anchor)
+                    .map_err(|e| format!("`element`: {e}"))?,
+                iterations: iterations as usize,
+                border,
+            });
+        }
         for (name, k) in ["width", "height"].iter().zip(ksize) {
             if !(1..=MAX_KSIZE).contains(&k) {
                 return Err(format!(
@@ -370,13 +521,13 @@ impl Setup {
                 ));
             }
         }
-        if !(1..=MAX_ITERATIONS).contains(&iterations) {
-            return Err(format!(
-                "`iterations` must be between 1 and {MAX_ITERATIONS}, got {iterations}"
-            ));
-        }
-        let element = StructuringElement::new(shape, ksize[0] as usize, ksize[1] as usize)
+        let mut element = StructuringElement::new(shape, ksize[0] as usize, ksize[1] as usize)
             .ok_or_else(|| "`ksize` must be at least 1".to_string())?;
+        if let Some((x, y)) = anchor {
+            element = element
+                .with_anchor(x, y)
+                .map_err(|e| format!("`anchor`: {e}"))?;
+        }
         Ok(Setup {
             element,
             iterations: iterations as usize,
@@ -389,11 +540,11 @@ impl Setup {
 macro_rules! common_doc {
     () => {
         r#"
-Structuring elements are OpenCV's `getStructuringElement(shape, ksize)` anchored at the centre
-(⌊w/2⌋, ⌊h/2⌋): "rect" (all ones), "cross" (middle row and column) and "ellipse" (in row i the
-ones |x − c| ≤ round(c·√(1 − (i − r)²/r²)), c = ⌊w/2⌋, r = ⌊h/2⌋; one pixel when h = 1).
-Border "neutral" (default)
-means outside pixels never win (OpenCV's `morphologyDefaultBorderValue`); "clamp", "reflect",
+Structuring elements are OpenCV's `getStructuringElement(shape, ksize)` or any binary mask given
+as `element` (rows of 0/1), anchored at `anchor`, by default the centre (⌊w/2⌋, ⌊h/2⌋).
+Shapes: "rect" (all ones), "cross" (middle row and column) and "ellipse" (in row i the ones
+|x − c| ≤ round(c·√(1 − (i − r)²/r²)), c = ⌊w/2⌋, r = ⌊h/2⌋; one pixel when h = 1).
+Border "neutral" (default) means outside pixels never win (OpenCV's `morphologyDefaultBorderValue`); "clamp", "reflect",
 "reflect_101" and "wrap" are OpenCV's border types. Like OpenCV, `iterations` > 1 with a full
 element (rect) is done in one pass with the equivalent larger rectangle
 (k + (iterations − 1)(k − 1), anchor scaled by iterations) when that stays ≤ 1023 px; other
@@ -468,11 +619,13 @@ Example:
         let MorphParams {
             shape,
             ksize,
+            element,
+            anchor,
             iterations,
             border,
         } = params;
         Ok(Erode {
-            setup: Setup::new(shape, ksize, iterations, border)?,
+            setup: Setup::new(shape, ksize, &element, anchor, iterations, border)?,
         })
     }
 }
@@ -506,11 +659,13 @@ Example:
         let MorphParams {
             shape,
             ksize,
+            element,
+            anchor,
             iterations,
             border,
         } = params;
         Ok(Dilate {
-            setup: Setup::new(shape, ksize, iterations, border)?,
+            setup: Setup::new(shape, ksize, &element, anchor, iterations, border)?,
         })
     }
 }
@@ -548,12 +703,14 @@ Example:
             operation,
             shape,
             ksize,
+            element,
+            anchor,
             iterations,
             border,
         } = params;
         Ok(Morphology {
             operation,
-            setup: Setup::new(shape, ksize, iterations, border)?,
+            setup: Setup::new(shape, ksize, &element, anchor, iterations, border)?,
         })
     }
 }
@@ -627,46 +784,72 @@ pub fn morphology(
     iterations: usize,
     border: MorphBorder,
 ) -> Image {
+    // Opening and closing run both passes in one sweep when one pass does each.
+    let fused = |first_min: bool, img: &Image| {
+        single_pass(element, iterations).and_then(|e| {
+            if first_min {
+                apply_fused::<Min, Max>(img, &e, border)
+            } else {
+                apply_fused::<Max, Min>(img, &e, border)
+            }
+        })
+    };
     let open = |img: &Image| {
-        dilate(
-            &erode(img, element, iterations, border),
-            element,
-            iterations,
-            border,
-        )
+        fused(true, img).unwrap_or_else(|| {
+            dilate(
+                &erode(img, element, iterations, border),
+                element,
+                iterations,
+                border,
+            )
+        })
     };
     let close = |img: &Image| {
-        erode(
-            &dilate(img, element, iterations, border),
-            element,
-            iterations,
-            border,
-        )
+        fused(false, img).unwrap_or_else(|| {
+            erode(
+                &dilate(img, element, iterations, border),
+                element,
+                iterations,
+                border,
+            )
+        })
     };
     match operation {
         Operation::Open => open(image),
         Operation::Close => close(image),
         Operation::Gradient => difference(
-            &dilate(image, element, iterations, border),
+            dilate(image, element, iterations, border),
             &erode(image, element, iterations, border),
+            false,
         ),
-        Operation::Tophat => difference(image, &open(image)),
-        Operation::Blackhat => difference(&close(image), image),
+        Operation::Tophat => difference(open(image), image, true),
+        Operation::Blackhat => difference(close(image), image, false),
     }
 }
 
-/// `a − b` per sample (saturating for unsigned types); `a` when the formats differ.
-fn difference(a: &Image, b: &Image) -> Image {
-    fn sub<T: Sample>(a: &[T], b: &[T]) -> Vec<T> {
-        a.iter().zip(b).map(|(&x, &y)| x.difference(y)).collect()
+/// `a − b` per sample, or `b − a` when `reversed` (saturating for unsigned types), written over
+/// `a`'s samples; `a` when the formats differ.
+fn difference(a: Image, b: &Image, reversed: bool) -> Image {
+    fn sub<T: Sample>(a: &mut [T], b: &[T], reversed: bool) {
+        if reversed {
+            for (x, &y) in a.iter_mut().zip(b) {
+                *x = y.difference(*x);
+            }
+        } else {
+            for (x, &y) in a.iter_mut().zip(b) {
+                *x = x.difference(y);
+            }
+        }
     }
-    let data = match (a.data(), b.data()) {
-        (PixelData::U8(x), PixelData::U8(y)) => PixelData::U8(sub(x, y)),
-        (PixelData::U16(x), PixelData::U16(y)) => PixelData::U16(sub(x, y)),
-        (PixelData::F32(x), PixelData::F32(y)) => PixelData::F32(sub(x, y)),
-        _ => return a.clone(),
-    };
-    same_shape(a, data)
+    let (width, height, channels) = (a.width(), a.height(), a.channels());
+    let mut data = a.into_data();
+    match (&mut data, b.data()) {
+        (PixelData::U8(x), PixelData::U8(y)) => sub(x, y, reversed),
+        (PixelData::U16(x), PixelData::U16(y)) => sub(x, y, reversed),
+        (PixelData::F32(x), PixelData::F32(y)) => sub(x, y, reversed),
+        _ => {}
+    }
+    Image::new(width, height, channels, data).unwrap_or_else(|_| b.clone())
 }
 
 /// An image of `image`'s size and channels holding `data` (which has the same sample count).
@@ -685,26 +868,58 @@ fn iterate<M: Extremum>(
     if image.is_empty() || (element.width == 1 && element.height == 1 && element.is_full()) {
         return image.clone();
     }
-    if iterations > 1 && element.is_full() {
-        // OpenCV's shortcut: n passes of a full k-wide rectangle are one pass of a
-        // (k + (n − 1)(k − 1))-wide rectangle with the anchor scaled by n.
-        let grow = |k: usize| k + (iterations - 1) * (k - 1);
-        let (w, h) = (grow(element.width), grow(element.height));
-        if w <= MAX_KSIZE as usize && h <= MAX_KSIZE as usize {
-            let merged = StructuringElement::rect_with_anchor(
-                w,
-                h,
-                element.anchor_x * iterations,
-                element.anchor_y * iterations,
-            );
-            return apply::<M>(image, &merged, border);
-        }
+    if let Some(single) = single_pass(element, iterations) {
+        return apply::<M>(image, &single, border);
     }
     let mut out = apply::<M>(image, element, border);
     for _ in 1..iterations {
         out = apply::<M>(&out, element, border);
     }
     out
+}
+
+/// The element one pass of which does `iterations` passes of `element`, if there is one: the
+/// element itself for one iteration; for a full rectangle OpenCV's shortcut (n passes of a full
+/// k-wide rectangle are one pass of a (k + (n − 1)(k − 1))-wide one with the anchor scaled by n)
+/// while that stays within [`MAX_KSIZE`].
+fn single_pass(element: &StructuringElement, iterations: usize) -> Option<StructuringElement> {
+    if iterations <= 1 {
+        return Some(element.clone());
+    }
+    if !element.is_full() {
+        return None;
+    }
+    let grow = |k: usize| k + (iterations - 1) * (k - 1);
+    let (w, h) = (grow(element.width), grow(element.height));
+    (w <= MAX_KSIZE as usize && h <= MAX_KSIZE as usize).then(|| {
+        StructuringElement::rect_with_anchor(
+            w,
+            h,
+            element.anchor_x * iterations,
+            element.anchor_y * iterations,
+        )
+    })
+}
+
+/// `B(A(image))` in one sweep (see [`fused_bands`]); `None` when that does not apply.
+fn apply_fused<A: Extremum, B: Extremum>(
+    image: &Image,
+    element: &StructuringElement,
+    border: MorphBorder,
+) -> Option<Image> {
+    if image.is_empty() {
+        return Some(image.clone());
+    }
+    let data = match image.data() {
+        PixelData::U8(src) => PixelData::U8(fused_bands::<A, B, u8>(image, src, element, border)?),
+        PixelData::U16(src) => {
+            PixelData::U16(fused_bands::<A, B, u16>(image, src, element, border)?)
+        }
+        PixelData::F32(src) => {
+            PixelData::F32(fused_bands::<A, B, f32>(image, src, element, border)?)
+        }
+    };
+    Some(same_shape(image, data))
 }
 
 /// One pass of `M` over every sample type.
@@ -719,6 +934,106 @@ fn apply<M: Extremum>(image: &Image, element: &StructuringElement, border: Morph
         }
     };
     same_shape(image, data)
+}
+
+/// Geometry of one extremum pass over an image: the element's groups and border tables.
+struct Pass {
+    groups: Vec<((usize, usize), usize, usize)>,
+    columns: BorderTable,
+    rows: BorderTable,
+    /// Samples per image row.
+    n: usize,
+    channels: usize,
+    kh: usize,
+}
+
+impl Pass {
+    fn new(
+        width: usize,
+        height: usize,
+        channels: usize,
+        element: &StructuringElement,
+        border: MorphBorder,
+    ) -> Pass {
+        let (kw, kh) = (element.width, element.height);
+        let mode = border.border_mode();
+        Pass {
+            groups: element.groups(),
+            columns: BorderTable::new(width, element.anchor_x, kw - 1 - element.anchor_x, mode),
+            rows: BorderTable::new(height, element.anchor_y, kh - 1 - element.anchor_y, mode),
+            n: width * channels,
+            channels,
+            kh,
+        }
+    }
+
+    /// Rows per parallel band.
+    fn band_rows(&self) -> usize {
+        BAND_ROWS.max(2 * self.kh)
+    }
+
+    /// The image rows `lo..hi` that output rows `y0..y1` read (`None` when they read none).
+    fn source_range(&self, y0: usize, y1: usize) -> Option<(usize, usize)> {
+        let sources = (y0..y1 + self.kh - 1).filter_map(|q| self.rows.source(q));
+        let (lo, hi) = sources.fold((usize::MAX, 0), |(lo, hi), r| (lo.min(r), hi.max(r + 1)));
+        (lo < hi).then_some((lo, hi))
+    }
+
+    /// The extremum of output rows `y0 .. y0 + out.len() / n` into `out`, reading image row `r`
+    /// at `src[(r − src_row0)·n ..]` (rows `src` does not hold read as neutral).
+    fn run_rows<M: Extremum, T: Sample>(
+        &self,
+        src: &[T],
+        src_row0: usize,
+        y0: usize,
+        out: &mut [T],
+        buffers: &mut BandBuffers<T>,
+    ) {
+        let n = self.n;
+        let channels = self.channels;
+        let padded_n = self.columns.padded_len() * channels;
+        let neutral = M::neutral::<T>();
+        let BandBuffers {
+            padded,
+            horizontal,
+            scratch,
+        } = buffers;
+        let out_rows = out.len() / n;
+        // Extended rows y0 .. y0 + out_rows + kh − 1, each padded through the column table.
+        let extended = out_rows + self.kh - 1;
+        padded.resize(extended * padded_n, neutral);
+        horizontal.resize(extended * n, neutral);
+        let padded = &mut padded[..extended * padded_n];
+        for (q, line) in padded.chunks_exact_mut(padded_n).enumerate() {
+            let row = self
+                .rows
+                .source(y0 + q)
+                .and_then(|r| r.checked_sub(src_row0))
+                .and_then(|r| src.get(r * n..(r + 1) * n));
+            match row {
+                Some(row) => self.columns.pad_row(row, channels, neutral, line),
+                None => line.fill(neutral),
+            }
+        }
+        for (index, &((first, len), j0, rows_in_group)) in self.groups.iter().enumerate() {
+            let used = out_rows + rows_in_group - 1;
+            let horizontal = &mut horizontal[..used * n];
+            for (e, line) in horizontal.chunks_exact_mut(n).enumerate() {
+                let start = (j0 + e) * padded_n + first * channels;
+                if let Some(row) = padded.get(start..start + n + (len - 1) * channels) {
+                    window_extremum::<M, T>(row, channels, len, line, false, scratch);
+                }
+            }
+            if rows_in_group <= DIRECT_MAX_TAPS {
+                // Row by row, so that the taps and the output row stay in L1.
+                for (y, line) in out.chunks_exact_mut(n).enumerate() {
+                    direct::<M, T>(&horizontal[y * n..], n, rows_in_group, line, index > 0);
+                }
+            } else {
+                window_extremum::<M, T>(horizontal, n, rows_in_group, out, index > 0, scratch);
+            }
+        }
+    }
 }
 
 /// The extremum under `element` of every sample of `src` (an image of `image`'s geometry),
@@ -736,53 +1051,62 @@ fn extremum_bands<M: Extremum, T: Sample>(
     if n == 0 || height == 0 || src.len() != n * height {
         return dst;
     }
-    let (kw, kh) = (element.width, element.height);
-    let mode = border.border_mode();
-    let columns = BorderTable::new(width, element.anchor_x, kw - 1 - element.anchor_x, mode);
-    let rows = BorderTable::new(height, element.anchor_y, kh - 1 - element.anchor_y, mode);
-    let groups = element.groups();
-    let padded_n = columns.padded_len() * channels;
-    let neutral = M::neutral::<T>();
-    let band_rows = BAND_ROWS.max(2 * kh);
+    let pass = Pass::new(width, height, channels, element, border);
+    let band_rows = pass.band_rows();
     dst.par_chunks_mut(band_rows * n)
         .enumerate()
         // Buffers are reused across the bands a worker takes; every sample read is written
         // first in each band, so reuse cannot change results.
         .for_each_init(BandBuffers::default, |buffers, (band, out)| {
-            let BandBuffers {
-                padded,
-                horizontal,
-                scratch,
-            } = buffers;
-            let y0 = band * band_rows;
-            let out_rows = out.len() / n;
-            // Extended rows y0 .. y0 + out_rows + kh − 1, each padded through the column table.
-            let extended = out_rows + kh - 1;
-            padded.resize(extended * padded_n, neutral);
-            horizontal.resize(extended * n, neutral);
-            let padded = &mut padded[..extended * padded_n];
-            for (q, line) in padded.chunks_exact_mut(padded_n).enumerate() {
-                match rows
-                    .source(y0 + q)
-                    .and_then(|r| src.get(r * n..(r + 1) * n))
-                {
-                    Some(row) => columns.pad_row(row, channels, neutral, line),
-                    None => line.fill(neutral),
-                }
-            }
-            for (index, &((first, len), j0, rows_in_group)) in groups.iter().enumerate() {
-                let used = out_rows + rows_in_group - 1;
-                let horizontal = &mut horizontal[..used * n];
-                for (e, line) in horizontal.chunks_exact_mut(n).enumerate() {
-                    let start = (j0 + e) * padded_n + first * channels;
-                    if let Some(row) = padded.get(start..start + n + (len - 1) * channels) {
-                        window_extremum::<M, T>(row, channels, len, line, false, scratch);
-                    }
-                }
-                window_extremum::<M, T>(horizontal, n, rows_in_group, out, index > 0, scratch);
-            }
+            pass.run_rows::<M, T>(src, 0, band * band_rows, out, buffers);
         });
     dst
+}
+
+/// `second(first(src))` with one element in one parallel sweep: each band computes the rows of
+/// the first pass it needs into a band buffer and runs the second pass on them, so no
+/// intermediate image is allocated. `None` when the first pass's rows a band needs are not a
+/// short range (wrap borders), for the caller to run the passes one after the other.
+fn fused_bands<A: Extremum, B: Extremum, T: Sample>(
+    image: &Image,
+    src: &[T],
+    element: &StructuringElement,
+    border: MorphBorder,
+) -> Option<Vec<T>> {
+    let (width, height) = (image.width(), image.height());
+    let channels = image.channels().count();
+    let n = width * channels;
+    if n == 0 || height == 0 || src.len() != n * height {
+        return None;
+    }
+    let pass = Pass::new(width, height, channels, element, border);
+    let band_rows = pass.band_rows();
+    // Every band must read a contiguous range of first-pass rows not much taller than itself.
+    let bands = height.div_ceil(band_rows);
+    let ranges: Vec<(usize, usize)> = (0..bands)
+        .map(|b| {
+            let y0 = b * band_rows;
+            let y1 = (y0 + band_rows).min(height);
+            pass.source_range(y0, y1).unwrap_or((y0, y0))
+        })
+        .collect();
+    if ranges
+        .iter()
+        .any(|&(lo, hi)| hi - lo > band_rows + 2 * pass.kh)
+    {
+        return None;
+    }
+    let mut dst = vec![T::default(); src.len()];
+    dst.par_chunks_mut(band_rows * n).enumerate().for_each_init(
+        || (BandBuffers::default(), Vec::new()),
+        |(buffers, stage), (band, out)| {
+            let (lo, hi) = ranges[band];
+            stage.resize((hi - lo) * n, T::default());
+            pass.run_rows::<A, T>(src, 0, lo, &mut stage[..(hi - lo) * n], buffers);
+            pass.run_rows::<B, T>(&stage[..(hi - lo) * n], lo, band * band_rows, out, buffers);
+        },
+    );
+    Some(dst)
 }
 
 /// Per-worker buffers of one band: padded source rows, horizontal results, van Herk scratch.
@@ -834,12 +1158,15 @@ fn window_extremum<M: Extremum, T: Sample>(
     }
     if len <= DIRECT_MAX_TAPS {
         direct::<M, T>(src, stride, len, out, combine);
+    } else if stride < WIDE_STRIDE && len <= DOUBLING_MAX_TAPS {
+        doubling::<M, T>(&src[..span], stride, len, out, combine, scratch);
     } else {
         van_herk::<M, T>(&src[..span], stride, len, out, combine, scratch);
     }
 }
 
-/// The extremum of `len` shifted slices, one pass per tap (vectorizes).
+/// The extremum of `len` shifted slices, two taps per pass over `out` (vectorizes).
+/// `src` holds at least `out.len() + (len − 1)·stride` samples.
 fn direct<M: Extremum, T: Sample>(
     src: &[T],
     stride: usize,
@@ -848,17 +1175,84 @@ fn direct<M: Extremum, T: Sample>(
     combine: bool,
 ) {
     let n = out.len();
-    if !combine {
-        out.copy_from_slice(&src[..n]);
-    } else {
-        for (o, &x) in out.iter_mut().zip(&src[..n]) {
-            *o = M::pick(*o, x);
+    if len == 0 || src.len() < n + (len - 1) * stride {
+        return;
+    }
+    let tap = |k: usize| &src[k * stride..k * stride + n];
+    let mut k = 1;
+    match (combine, len) {
+        (false, 1) => out.copy_from_slice(tap(0)),
+        (true, 1) => {
+            for (o, &x) in out.iter_mut().zip(tap(0)) {
+                *o = M::pick(*o, x);
+            }
+        }
+        (false, _) => {
+            for ((o, &a), &b) in out.iter_mut().zip(tap(0)).zip(tap(1)) {
+                *o = M::pick(a, b);
+            }
+            k = 2;
+        }
+        (true, _) => {
+            for ((o, &a), &b) in out.iter_mut().zip(tap(0)).zip(tap(1)) {
+                *o = M::pick(*o, M::pick(a, b));
+            }
+            k = 2;
         }
     }
-    for k in 1..len {
-        let tap = &src[k * stride..k * stride + n];
-        for (o, &x) in out.iter_mut().zip(tap) {
-            *o = M::pick(*o, x);
+    while k + 1 < len {
+        for ((o, &a), &b) in out.iter_mut().zip(tap(k)).zip(tap(k + 1)) {
+            *o = M::pick(*o, M::pick(a, b));
+        }
+        k += 2;
+    }
+    if k < len {
+        for (o, &a) in out.iter_mut().zip(tap(k)) {
+            *o = M::pick(*o, a);
+        }
+    }
+}
+
+/// The extremum over windows of `len` by doubling: windows of 2, 4, … p samples (p the largest
+/// power of two ≤ `len`) each from two of the previous ones, then
+/// `out[i] = op(w_p[i], w_p[i + (len − p)·stride])`. ⌈log₂ len⌉ vectorized passes, which along
+/// rows of few channels beats the scalar van Herk recurrences for moderate lengths.
+fn doubling<M: Extremum, T: Sample>(
+    src: &[T],
+    stride: usize,
+    len: usize,
+    out: &mut [T],
+    combine: bool,
+    scratch: &mut Scratch<T>,
+) {
+    let Scratch {
+        prefix: a,
+        suffix: b,
+    } = scratch;
+    a.clear();
+    a.extend_from_slice(src);
+    let mut window = 1;
+    while window * 2 <= len {
+        let d = window * stride;
+        let valid = a.len() - d;
+        b.clear();
+        b.extend(a[..valid].iter().zip(&a[d..]).map(|(&x, &y)| M::pick(x, y)));
+        std::mem::swap(a, b);
+        window *= 2;
+    }
+    let rest = (len - window) * stride;
+    let n = out.len();
+    if a.len() < n + rest {
+        return;
+    }
+    let (head, tail) = (&a[..n], &a[rest..rest + n]);
+    if combine {
+        for ((o, &x), &y) in out.iter_mut().zip(head).zip(tail) {
+            *o = M::pick(*o, M::pick(x, y));
+        }
+    } else {
+        for ((o, &x), &y) in out.iter_mut().zip(head).zip(tail) {
+            *o = M::pick(x, y);
         }
     }
 }
@@ -989,8 +1383,16 @@ mod tests {
         let src = samples(image);
         let (ax, ay) = element.anchor();
         let mode = border.border_mode();
+        // The neutral value in the image's own range (cells off the image all read it).
+        let high = match image.data() {
+            PixelData::U8(_) => 255.0,
+            PixelData::U16(_) => 65535.0,
+            PixelData::F32(_) => f64::INFINITY,
+        };
         let neutral = if erosion {
-            f64::INFINITY
+            high
+        } else if high.is_finite() {
+            0.0
         } else {
             f64::NEG_INFINITY
         };
@@ -1146,6 +1548,41 @@ mod tests {
         assert_eq!(element(Shape::Ellipse, 5, 5).groups().len(), 2);
     }
 
+    #[test]
+    fn custom_elements() {
+        let e = StructuringElement::from_mask(&[vec![1, 0, 1], vec![0, 1]], None).unwrap();
+        assert_eq!((e.width(), e.height(), e.anchor()), (3, 2, (1, 1)));
+        assert_eq!(e.offsets(), [(-1, -1), (1, -1), (0, 0)]);
+        assert!(!e.contains(2, 1));
+        // Two runs in the first row: three groups at most, one cell each or merged.
+        assert!(!e.groups().is_empty());
+        assert!(StructuringElement::from_mask(&[], None).is_err());
+        assert!(StructuringElement::from_mask(&[vec![0, 0]], None).is_err());
+        assert!(StructuringElement::from_mask(&[vec![1]], Some((1, 0))).is_err());
+        let r = e.reflected();
+        assert_eq!(r.anchor(), (1, 0));
+        assert!(r.contains(1, 0) && r.contains(0, 1) && r.contains(2, 1) && !r.contains(0, 0));
+        // Hand case: erosion by a horizontal pair [1, 1] anchored at its left cell.
+        let img = gray_u8(4, 1, vec![5, 3, 9, 7]);
+        let pair = StructuringElement::from_mask(&[vec![1, 1]], Some((0, 0))).unwrap();
+        assert_eq!(
+            erode(&img, &pair, 1, MorphBorder::Neutral).as_u8().unwrap(),
+            [3, 3, 7, 7]
+        );
+        let p = |element: Vec<Vec<u8>>, anchor| {
+            Morphology::new(MorphologyParams {
+                element,
+                anchor,
+                ..MorphologyParams::default()
+            })
+        };
+        assert!(p(vec![vec![1, 1]], Some([1, 0])).is_ok());
+        let err = p(vec![vec![0]], None).unwrap_err();
+        assert!(err.contains("element"), "{err}");
+        let err = p(vec![], Some([3, 3])).unwrap_err();
+        assert!(err.contains("anchor"), "{err}");
+    }
+
     const BORDERS: [MorphBorder; 5] = [
         MorphBorder::Neutral,
         MorphBorder::Clamp,
@@ -1186,7 +1623,7 @@ mod tests {
             .map(|r| (r * 1000.0) as u16)
             .collect();
         for stride in 1..5 {
-            for len in 1..40 {
+            for len in 1..70 {
                 let n = ((src.len() - (len - 1) * stride) / stride) * stride;
                 let mut a = vec![0; n];
                 let mut b = vec![0; n];
@@ -1201,6 +1638,16 @@ mod tests {
                 );
                 direct::<Min, u16>(&src, stride, len, &mut b, false);
                 assert_eq!(a, b, "stride {stride} len {len}");
+                let mut c = vec![0; n];
+                doubling::<Min, u16>(
+                    &src[..span],
+                    stride,
+                    len,
+                    &mut c,
+                    false,
+                    &mut Scratch::default(),
+                );
+                assert_eq!(c, b, "doubling stride {stride} len {len}");
             }
         }
     }
@@ -1440,6 +1887,52 @@ mod tests {
             let got = if erosion { erode(&img, &e, 1, border) } else { dilate(&img, &e, 1, border) };
             prop_assert_eq!(got.format(), img.format());
             prop_assert_eq!(samples(&got), reference(&img, &e, border, erosion));
+        }
+
+        #[test]
+        fn any_element_matches_the_definition(
+            w in 1usize..14,
+            h in 1usize..14,
+            mask in prop::collection::vec(prop::collection::vec(0u8..2, 1..7), 1..7),
+            ax in 0usize..7,
+            ay in 0usize..7,
+            border in any_border(),
+            kind in prop::sample::select(vec![Kind::U8, Kind::F32]),
+            erosion in any::<bool>(),
+            seed in any::<u64>(),
+        ) {
+            let img = random_image(w, h, Channels::Rgb, kind, seed);
+            let Ok(e) = StructuringElement::from_mask(&mask, Some((ax, ay))) else {
+                return Ok(());
+            };
+            let got = if erosion { erode(&img, &e, 1, border) } else { dilate(&img, &e, 1, border) };
+            prop_assert_eq!(samples(&got), reference(&img, &e, border, erosion));
+            // Iterated custom elements are repeated passes.
+            let twice = if erosion { erode(&img, &e, 2, border) } else { dilate(&img, &e, 2, border) };
+            let again = if erosion { erode(&got, &e, 1, border) } else { dilate(&got, &e, 1, border) };
+            prop_assert_eq!(twice, again);
+        }
+
+        #[test]
+        fn fused_open_and_close_equal_two_passes(
+            w in 1usize..40,
+            h in 1usize..90,
+            k in 1usize..12,
+            shape in prop::sample::select(Shape::ALL.to_vec()),
+            border in any_border(),
+            iterations in 1usize..3,
+            seed in any::<u64>(),
+        ) {
+            let img = random_image(w, h, Channels::Gray, Kind::U8, seed);
+            let e = element(shape, k, k / 2 + 1);
+            prop_assert_eq!(
+                morphology(&img, Operation::Open, &e, iterations, border),
+                dilate(&erode(&img, &e, iterations, border), &e, iterations, border)
+            );
+            prop_assert_eq!(
+                morphology(&img, Operation::Close, &e, iterations, border),
+                erode(&dilate(&img, &e, iterations, border), &e, iterations, border)
+            );
         }
     }
 }
