@@ -19,6 +19,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::box_filter::BoxFilter>()?;
     registry.register::<filter::sobel::Sobel>()?;
     registry.register::<filter::sobel::Scharr>()?;
+    registry.register::<filter::convolve::Convolve>()?;
     registry.register::<filter::morphology::Erode>()?;
     registry.register::<filter::morphology::Dilate>()?;
     registry.register::<filter::morphology::Morphology>()?;

@@ -2,6 +2,8 @@
 
 pub mod border;
 pub mod box_filter;
+pub mod convolve;
+pub mod derivatives;
 pub mod gaussian;
 pub mod grayscale;
 pub mod morphology;

@@ -3,13 +3,19 @@
 //! Both run on [`separable_filter`] over an f32 copy of the input, so u8 input gives exact
 //! integer results (every product and partial sum is an integer far below 2²⁴), and the output
 //! is always f32 with the input's channels, each filtered on its own.
+//!
+//! u8 images with 3-tap kernels (Sobel ksize 3, Scharr) take an integer fast path instead: per
+//! output row, the vertical pass sums three source rows into an i16 row, which is padded through
+//! the border table and correlated horizontally in i32, converted straight to f32. Every
+//! intermediate is the same exact integer as in the f32 path, so the results are bit-identical.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
+use rayon::prelude::*;
 
-use super::border::{BorderMode, check_border_value};
+use super::border::{BorderMode, BorderTable, check_border_value};
 use super::gaussian::separable_filter;
 
 /// Kernel sizes `filter.sobel` accepts.
@@ -227,8 +233,145 @@ pub fn sobel(
     )
 }
 
-/// `scale · separable_filter(f32 copy of image, kx, ky) + delta`.
+/// `scale · separable_filter(f32 copy of image, kx, ky) + delta`, through the integer path
+/// ([`derivative_u8_3tap`]) where it applies.
 fn derivative(
+    image: &Image,
+    kx: &[f64],
+    ky: &[f64],
+    scale: f64,
+    delta: f64,
+    border: BorderMode,
+    border_value: f64,
+) -> Image {
+    if let Some(fast) = derivative_u8_3tap(image, kx, ky, scale, delta, border, border_value) {
+        return fast;
+    }
+    derivative_generic(image, kx, ky, scale, delta, border, border_value)
+}
+
+/// Output rows per parallel band of the integer path.
+const BAND_ROWS: usize = 32;
+
+/// The taps of a 3-tap kernel as integers when every weight is an integer and
+/// `255 · Σ|w|` fits in i16.
+fn small_integer_taps(kernel: &[f64]) -> Option<[i16; 3]> {
+    let taps: [f64; 3] = kernel.try_into().ok()?;
+    if taps.iter().any(|w| w.fract() != 0.0 || w.abs() > 128.0) {
+        return None;
+    }
+    let abs_sum: f64 = taps.iter().map(|w| w.abs()).sum();
+    if abs_sum * 255.0 > f64::from(i16::MAX) {
+        return None;
+    }
+    Some(taps.map(|w| w as i16))
+}
+
+/// The exact integer path for u8 images and 3-tap integer kernels (module docs); `None` when
+/// it does not apply (other depths or kernels, or a constant border value that is not an
+/// integer in 0..=255).
+fn derivative_u8_3tap(
+    image: &Image,
+    kx: &[f64],
+    ky: &[f64],
+    scale: f64,
+    delta: f64,
+    border: BorderMode,
+    border_value: f64,
+) -> Option<Image> {
+    let src = image.as_u8()?;
+    let kx = small_integer_taps(kx)?;
+    let ky = small_integer_taps(ky)?;
+    let constant = if border == BorderMode::Constant {
+        if border_value.fract() != 0.0 || !(0.0..=255.0).contains(&border_value) {
+            return None;
+        }
+        border_value as u8
+    } else {
+        0
+    };
+    let (width, height, channels) = (image.width(), image.height(), image.channels());
+    let c = channels.count();
+    let n = width * c;
+    let mut dst = vec![0.0f32; src.len()];
+    if n > 0 && height > 0 {
+        let rows = BorderTable::new(height, 1, 1, border);
+        let columns = BorderTable::new(width, 1, 1, border);
+        let constant_row = vec![constant; n];
+        // A column outside the image reads the constant in all three rows.
+        let edge = i16::from(constant) * (ky[0] + ky[1] + ky[2]);
+        let row = |k: usize| {
+            rows.source(k)
+                .and_then(|r| src.get(r * n..(r + 1) * n))
+                .unwrap_or(&constant_row)
+        };
+        let plain = scale == 1.0 && delta == 0.0;
+        dst.par_chunks_mut(BAND_ROWS * n)
+            .enumerate()
+            .for_each(|(band, out)| {
+                let mut sums = vec![0i16; n + 2 * c];
+                for (r, line) in out.chunks_exact_mut(n).enumerate() {
+                    let y = band * BAND_ROWS + r;
+                    // Extended rows y, y + 1, y + 2 are source rows y − 1, y, y + 1.
+                    vertical_3tap(row(y), row(y + 1), row(y + 2), ky, &mut sums[c..c + n]);
+                    pad_edges(&mut sums, c, n, &columns, edge);
+                    horizontal_3tap(&sums, c, kx, line);
+                    if !plain {
+                        for v in line.iter_mut() {
+                            *v = (f64::from(*v) * scale + delta) as f32;
+                        }
+                    }
+                }
+            });
+    }
+    Image::from_f32(width, height, channels, dst).ok()
+}
+
+/// `out[i] = k0·a[i] + k1·b[i] + k2·c[i]` (no overflow: see [`small_integer_taps`]).
+fn vertical_3tap(a: &[u8], b: &[u8], c: &[u8], k: [i16; 3], out: &mut [i16]) {
+    let n = out.len().min(a.len()).min(b.len()).min(c.len());
+    let (a, b, c, out) = (&a[..n], &b[..n], &c[..n], &mut out[..n]);
+    for i in 0..n {
+        out[i] = k[0] * i16::from(a[i]) + k[1] * i16::from(b[i]) + k[2] * i16::from(c[i]);
+    }
+}
+
+/// Fills the one-pixel margins of `sums` (`c` samples each side of the `n` inner samples)
+/// through the column border table; pixels reading the constant get `edge`.
+fn pad_edges(sums: &mut [i16], c: usize, n: usize, columns: &BorderTable, edge: i16) {
+    let width = n / c.max(1);
+    for (position, start) in [(0, 0), (width + 1, c + n)] {
+        for ch in 0..c {
+            let value = match columns.source(position) {
+                Some(s) => sums.get(c + s * c + ch).copied().unwrap_or(edge),
+                None => edge,
+            };
+            if let Some(slot) = sums.get_mut(start + ch) {
+                *slot = value;
+            }
+        }
+    }
+}
+
+/// `out[i] = k0·s[i] + k1·s[i + c] + k2·s[i + 2c]` in i32, as f32 (exact).
+fn horizontal_3tap(sums: &[i16], c: usize, k: [i16; 3], out: &mut [f32]) {
+    let n = out.len();
+    let (Some(a), Some(b), Some(d)) = (
+        sums.get(..n),
+        sums.get(c..c + n),
+        sums.get(2 * c..2 * c + n),
+    ) else {
+        return;
+    };
+    let k = k.map(i32::from);
+    for i in 0..n {
+        let v = k[0] * i32::from(a[i]) + k[1] * i32::from(b[i]) + k[2] * i32::from(d[i]);
+        out[i] = v as f32;
+    }
+}
+
+/// The general path: `scale · separable_filter(f32 copy of image, kx, ky) + delta`.
+fn derivative_generic(
     image: &Image,
     kx: &[f64],
     ky: &[f64],
@@ -660,5 +803,56 @@ mod tests {
         assert!(Scharr::new(scharr(0, 1)).is_ok());
         assert!(Scharr::new(scharr(1, 1)).is_err());
         assert!(Scharr::new(scharr(0, 0)).is_err());
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(64))]
+        #[test]
+        fn integer_path_equals_float_path(
+            w in 0usize..20,
+            h in 0usize..20,
+            rgb in proptest::bool::ANY,
+            seed in 0u64..1000,
+            kernel in 0usize..5,
+            mode in 0usize..5,
+            constant in 0u8..=255,
+            scaled in proptest::bool::ANY,
+        ) {
+            let channels = if rgb { Channels::Rgb } else { Channels::Gray };
+            let image = random_u8(w, h, channels, seed);
+            let border = MODES[mode];
+            let value = if border == BorderMode::Constant { f64::from(constant) } else { 0.0 };
+            let (scale, delta) = if scaled { (0.37, -5.25) } else { (1.0, 0.0) };
+            let (kx, ky) = match kernel {
+                0 => (deriv_kernel(3, 1), deriv_kernel(3, 0)),
+                1 => (deriv_kernel(3, 0), deriv_kernel(3, 1)),
+                2 => (deriv_kernel(3, 2), deriv_kernel(3, 1)),
+                3 => (vec![-1.0, 0.0, 1.0], SCHARR_SMOOTHING.to_vec()),
+                _ => (SCHARR_SMOOTHING.to_vec(), vec![-1.0, 0.0, 1.0]),
+            };
+            let fast = derivative_u8_3tap(&image, &kx, &ky, scale, delta, border, value);
+            proptest::prop_assert!(fast.is_some());
+            let generic = derivative_generic(&image, &kx, &ky, scale, delta, border, value);
+            proptest::prop_assert_eq!(fast.unwrap(), generic);
+        }
+    }
+
+    #[test]
+    fn integer_path_only_where_exact() {
+        let image = random_u8(5, 4, Channels::Gray, 3);
+        let (kx, ky) = (deriv_kernel(3, 1), deriv_kernel(3, 0));
+        let run = |kx: &[f64], border, value| {
+            derivative_u8_3tap(&image, kx, &ky, 1.0, 0.0, border, value).is_some()
+        };
+        assert!(run(&kx, BorderMode::Reflect101, 0.0));
+        assert!(run(&kx, BorderMode::Constant, 255.0));
+        assert!(!run(&kx, BorderMode::Constant, 99.5));
+        assert!(!run(&kx, BorderMode::Constant, 256.0));
+        assert!(!run(&deriv_kernel(5, 1), BorderMode::Reflect101, 0.0));
+        assert!(!run(&[0.5, 0.0, -0.5], BorderMode::Reflect101, 0.0));
+        let float = to_f32(&image);
+        assert!(
+            derivative_u8_3tap(&float, &kx, &ky, 1.0, 0.0, BorderMode::Reflect101, 0.0).is_none()
+        );
     }
 }

@@ -1,0 +1,1 @@
+//! Derivative and sharpening filters built on the separable passes.
