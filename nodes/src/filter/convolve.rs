@@ -19,6 +19,7 @@ use rayon::prelude::*;
 
 use super::border::{BorderMode, BorderTable, check_border_value};
 use super::gaussian::separable_filter;
+use super::sobel::to_f32;
 
 /// Largest kernel side, in taps.
 pub const MAX_KERNEL_SIDE: usize = 255;
@@ -416,17 +417,6 @@ fn finish(
         _ => PixelData::F32(values),
     };
     Image::new(width, height, channels, data).unwrap_or_else(|_| image.clone())
-}
-
-/// The samples of `image` as f32 (exact for u8 and u16).
-fn to_f32(image: &Image) -> Image {
-    let data: Vec<f32> = match image.data() {
-        PixelData::U8(v) => v.iter().map(|&x| f32::from(x)).collect(),
-        PixelData::U16(v) => v.iter().map(|&x| f32::from(x)).collect(),
-        PixelData::F32(v) => v.clone(),
-    };
-    Image::from_f32(image.width(), image.height(), image.channels(), data)
-        .unwrap_or_else(|_| image.clone())
 }
 
 /// A sample type of the dense path.

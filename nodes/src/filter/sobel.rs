@@ -137,7 +137,7 @@ Example:
 
 /// Checks shared by both operators: finite scale, delta and border value, and a border value
 /// only with border "constant".
-fn check_common(
+pub(crate) fn check_common(
     scale: f64,
     delta: f64,
     border: BorderMode,
@@ -235,7 +235,7 @@ pub fn sobel(
 
 /// `scale · separable_filter(f32 copy of image, kx, ky) + delta`, through the integer path
 /// ([`derivative_u8_3tap`]) where it applies.
-fn derivative(
+pub(crate) fn derivative(
     image: &Image,
     kx: &[f64],
     ky: &[f64],
@@ -399,7 +399,7 @@ fn derivative_generic(
 }
 
 /// The samples of `image` as f32 (exact for u8 and u16).
-fn to_f32(image: &Image) -> Image {
+pub(crate) fn to_f32(image: &Image) -> Image {
     let data: Vec<f32> = match image.data() {
         PixelData::U8(v) => v.iter().map(|&x| f32::from(x)).collect(),
         PixelData::U16(v) => v.iter().map(|&x| f32::from(x)).collect(),
