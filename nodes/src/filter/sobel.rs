@@ -4,10 +4,12 @@
 //! integer results (every product and partial sum is an integer far below 2²⁴), and the output
 //! is always f32 with the input's channels, each filtered on its own.
 //!
-//! u8 images with 3-tap kernels (Sobel ksize 3, Scharr) take an integer fast path instead: per
-//! output row, the vertical pass sums three source rows into an i16 row, which is padded through
-//! the border table and correlated horizontally in i32, converted straight to f32. Every
-//! intermediate is the same exact integer as in the f32 path, so the results are bit-identical.
+//! u8 images with 3-tap integer kernels (Sobel ksize 3, Scharr, Prewitt, the Laplacian
+//! stencils) take an integer fast path instead: per output row, the vertical pass sums three
+//! source rows into an i16 row, which is padded through the border table and correlated
+//! horizontally in i16, converted straight to f32. The common kernels are compiled with their
+//! weights as constants. Every intermediate is the same exact integer as in the f32 path (the
+//! path is taken only when no result can leave i16), so the results are bit-identical.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::params;
@@ -253,23 +255,24 @@ pub(crate) fn derivative(
 /// Output rows per parallel band of the integer path.
 const BAND_ROWS: usize = 32;
 
-/// The taps of a 3-tap kernel as integers when every weight is an integer and
-/// `255 · Σ|w|` fits in i16.
-fn small_integer_taps(kernel: &[f64]) -> Option<[i16; 3]> {
+/// The taps of a 3-tap kernel as integers when every weight is an integer.
+fn integer_taps(kernel: &[f64]) -> Option<[i16; 3]> {
     let taps: [f64; 3] = kernel.try_into().ok()?;
-    if taps.iter().any(|w| w.fract() != 0.0 || w.abs() > 128.0) {
-        return None;
-    }
-    let abs_sum: f64 = taps.iter().map(|w| w.abs()).sum();
-    if abs_sum * 255.0 > f64::from(i16::MAX) {
+    if taps.iter().any(|w| w.fract() != 0.0 || w.abs() > 255.0) {
         return None;
     }
     Some(taps.map(|w| w as i16))
 }
 
+/// `Σ|w|` of a kernel.
+fn abs_sum(taps: [i16; 3]) -> i32 {
+    taps.iter().map(|&w| i32::from(w).abs()).sum()
+}
+
 /// The exact integer path for u8 images and 3-tap integer kernels (module docs); `None` when
-/// it does not apply (other depths or kernels, or a constant border value that is not an
-/// integer in 0..=255).
+/// it does not apply: other depths or kernels, kernels whose results could leave i16
+/// (`255 · Σ|kx| · Σ|ky| > 32767`), or a constant border value that is not an integer in
+/// 0..=255.
 fn derivative_u8_3tap(
     image: &Image,
     kx: &[f64],
@@ -280,8 +283,11 @@ fn derivative_u8_3tap(
     border_value: f64,
 ) -> Option<Image> {
     let src = image.as_u8()?;
-    let kx = small_integer_taps(kx)?;
-    let ky = small_integer_taps(ky)?;
+    let kx = integer_taps(kx)?;
+    let ky = integer_taps(ky)?;
+    if 255 * abs_sum(kx) * abs_sum(ky) > i32::from(i16::MAX) {
+        return None;
+    }
     let constant = if border == BorderMode::Constant {
         if border_value.fract() != 0.0 || !(0.0..=255.0).contains(&border_value) {
             return None;
@@ -293,46 +299,104 @@ fn derivative_u8_3tap(
     let (width, height, channels) = (image.width(), image.height(), image.channels());
     let c = channels.count();
     let n = width * c;
-    let mut dst = vec![0.0f32; src.len()];
-    if n > 0 && height > 0 {
-        let rows = BorderTable::new(height, 1, 1, border);
-        let columns = BorderTable::new(width, 1, 1, border);
-        let constant_row = vec![constant; n];
-        // A column outside the image reads the constant in all three rows.
-        let edge = i16::from(constant) * (ky[0] + ky[1] + ky[2]);
-        let row = |k: usize| {
-            rows.source(k)
-                .and_then(|r| src.get(r * n..(r + 1) * n))
-                .unwrap_or(&constant_row)
-        };
-        let plain = scale == 1.0 && delta == 0.0;
+    if n == 0 || height == 0 {
+        return Image::from_f32(width, height, channels, vec![0.0; src.len()]).ok();
+    }
+    let rows = BorderTable::new(height, 1, 1, border);
+    let columns = BorderTable::new(width, 1, 1, border);
+    let constant_row = vec![constant; n];
+    // A column outside the image reads the constant in all three rows.
+    let edge = i16::from(constant) * (ky[0] + ky[1] + ky[2]);
+    let row = |k: usize| {
+        rows.source(k)
+            .and_then(|r| src.get(r * n..(r + 1) * n))
+            .unwrap_or(&constant_row)
+    };
+    let plain = scale == 1.0 && delta == 0.0;
+    let scale_row = |line: &mut [f32]| {
+        if !plain {
+            for v in line.iter_mut() {
+                *v = (f64::from(*v) * scale + delta) as f32;
+            }
+        }
+    };
+    // Output row y reads extended rows y, y + 1, y + 2 (source rows y − 1, y, y + 1).
+    let vertical = |y: usize, sums: &mut [i16]| {
+        vertical_3tap(row(y), row(y + 1), row(y + 2), ky, &mut sums[c..c + n]);
+        pad_edges(sums, c, n, &columns, edge);
+    };
+    let dst = if rayon::current_num_threads() == 1 {
+        // One thread: append row by row, which spares zero-filling the output first.
+        let mut dst = Vec::with_capacity(src.len());
+        let mut sums = vec![0i16; n + 2 * c];
+        for y in 0..height {
+            vertical(y, &mut sums);
+            let start = dst.len();
+            horizontal_3tap(&sums, c, kx, Output::Append(&mut dst));
+            scale_row(&mut dst[start..]);
+        }
+        dst
+    } else {
+        let mut dst = vec![0.0f32; src.len()];
         dst.par_chunks_mut(BAND_ROWS * n)
             .enumerate()
             .for_each(|(band, out)| {
                 let mut sums = vec![0i16; n + 2 * c];
                 for (r, line) in out.chunks_exact_mut(n).enumerate() {
-                    let y = band * BAND_ROWS + r;
-                    // Extended rows y, y + 1, y + 2 are source rows y − 1, y, y + 1.
-                    vertical_3tap(row(y), row(y + 1), row(y + 2), ky, &mut sums[c..c + n]);
-                    pad_edges(&mut sums, c, n, &columns, edge);
-                    horizontal_3tap(&sums, c, kx, line);
-                    if !plain {
-                        for v in line.iter_mut() {
-                            *v = (f64::from(*v) * scale + delta) as f32;
-                        }
-                    }
+                    vertical(band * BAND_ROWS + r, &mut sums);
+                    horizontal_3tap(&sums, c, kx, Output::Write(line));
+                    scale_row(line);
                 }
             });
-    }
+        dst
+    };
     Image::from_f32(width, height, channels, dst).ok()
 }
 
-/// `out[i] = k0·a[i] + k1·b[i] + k2·c[i]` (no overflow: see [`small_integer_taps`]).
+/// Calls `$f::<A, B, C>` for the common 3-tap kernels (so that their weights are constants the
+/// compiler folds into shifts and adds), `$general` otherwise.
+macro_rules! dispatch_taps {
+    ($k:expr, $f:ident, $general:expr, ($($arg:expr),*)) => {
+        match $k {
+            [1, 2, 1] => $f::<1, 2, 1>($($arg),*),
+            [-1, 0, 1] => $f::<-1, 0, 1>($($arg),*),
+            [1, -2, 1] => $f::<1, -2, 1>($($arg),*),
+            [3, 10, 3] => $f::<3, 10, 3>($($arg),*),
+            [1, 1, 1] => $f::<1, 1, 1>($($arg),*),
+            [0, 1, 0] => $f::<0, 1, 0>($($arg),*),
+            _ => $general,
+        }
+    };
+}
+
+/// `out[i] = k0·a[i] + k1·b[i] + k2·c[i]` in i16 (no overflow: see [`derivative_u8_3tap`]).
 fn vertical_3tap(a: &[u8], b: &[u8], c: &[u8], k: [i16; 3], out: &mut [i16]) {
+    dispatch_taps!(
+        k,
+        vertical_const,
+        vertical_taps(a, b, c, k, out),
+        (a, b, c, out)
+    )
+}
+
+fn vertical_const<const K0: i16, const K1: i16, const K2: i16>(
+    a: &[u8],
+    b: &[u8],
+    c: &[u8],
+    out: &mut [i16],
+) {
+    vertical_taps(a, b, c, [K0, K1, K2], out);
+}
+
+#[inline(always)]
+fn vertical_taps(a: &[u8], b: &[u8], c: &[u8], k: [i16; 3], out: &mut [i16]) {
     let n = out.len().min(a.len()).min(b.len()).min(c.len());
     let (a, b, c, out) = (&a[..n], &b[..n], &c[..n], &mut out[..n]);
     for i in 0..n {
-        out[i] = k[0] * i16::from(a[i]) + k[1] * i16::from(b[i]) + k[2] * i16::from(c[i]);
+        out[i] = k[0]
+            .wrapping_mul(i16::from(a[i]))
+            .wrapping_add(k[1].wrapping_mul(i16::from(b[i])))
+            .wrapping_add(k[2].wrapping_mul(i16::from(c[i])));
     }
 }
 
@@ -353,9 +417,18 @@ fn pad_edges(sums: &mut [i16], c: usize, n: usize, columns: &BorderTable, edge: 
     }
 }
 
-/// `out[i] = k0·s[i] + k1·s[i + c] + k2·s[i + 2c]` in i32, as f32 (exact).
-fn horizontal_3tap(sums: &[i16], c: usize, k: [i16; 3], out: &mut [f32]) {
-    let n = out.len();
+/// Where the horizontal pass puts a row of results.
+enum Output<'a> {
+    /// Overwrite this row.
+    Write(&'a mut [f32]),
+    /// Append the row to the output built so far.
+    Append(&'a mut Vec<f32>),
+}
+
+/// `k0·s[i] + k1·s[i + c] + k2·s[i + 2c]` in i16 for the `sums.len() − 2c` samples of a row,
+/// as f32 (exact: see [`derivative_u8_3tap`]).
+fn horizontal_3tap(sums: &[i16], c: usize, k: [i16; 3], out: Output<'_>) {
+    let n = sums.len().saturating_sub(2 * c);
     let (Some(a), Some(b), Some(d)) = (
         sums.get(..n),
         sums.get(c..c + n),
@@ -363,10 +436,40 @@ fn horizontal_3tap(sums: &[i16], c: usize, k: [i16; 3], out: &mut [f32]) {
     ) else {
         return;
     };
-    let k = k.map(i32::from);
-    for i in 0..n {
-        let v = k[0] * i32::from(a[i]) + k[1] * i32::from(b[i]) + k[2] * i32::from(d[i]);
-        out[i] = v as f32;
+    dispatch_taps!(
+        k,
+        horizontal_const,
+        horizontal_taps(a, b, d, k, out),
+        (a, b, d, out)
+    )
+}
+
+fn horizontal_const<const K0: i16, const K1: i16, const K2: i16>(
+    a: &[i16],
+    b: &[i16],
+    c: &[i16],
+    out: Output<'_>,
+) {
+    horizontal_taps(a, b, c, [K0, K1, K2], out);
+}
+
+#[inline(always)]
+fn horizontal_taps(a: &[i16], b: &[i16], c: &[i16], k: [i16; 3], out: Output<'_>) {
+    let tap = move |((&a, &b), &c): ((&i16, &i16), &i16)| {
+        let v = k[0]
+            .wrapping_mul(a)
+            .wrapping_add(k[1].wrapping_mul(b))
+            .wrapping_add(k[2].wrapping_mul(c));
+        f32::from(v)
+    };
+    let values = a.iter().zip(b).zip(c).map(tap);
+    match out {
+        Output::Write(line) => {
+            for (o, v) in line.iter_mut().zip(values) {
+                *o = v;
+            }
+        }
+        Output::Append(dst) => dst.extend(values),
     }
 }
 
@@ -756,6 +859,25 @@ mod tests {
     }
 
     #[test]
+    fn integer_path_identical_for_any_thread_count() {
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
+        let image = random_u8(211, 150, Channels::Rgb, 5);
+        let (kx, ky) = (deriv_kernel(3, 1), deriv_kernel(3, 0));
+        let run = || {
+            derivative_u8_3tap(&image, &kx, &ky, 1.0, 0.0, BorderMode::Reflect, 0.0).unwrap()
+        };
+        let one = pool(1).install(run);
+        assert_eq!(one, pool(3).install(run));
+        let generic = derivative_generic(&image, &kx, &ky, 1.0, 0.0, BorderMode::Reflect, 0.0);
+        assert_eq!(one, generic);
+    }
+
+    #[test]
     fn tiny_and_empty_images() {
         let one = Image::from_u8(1, 1, Channels::Gray, vec![200]).unwrap();
         let d = sobel(&one, 1, 0, 3, 1.0, 0.0, BorderMode::Reflect101, 0.0);
@@ -850,6 +972,9 @@ mod tests {
         assert!(!run(&kx, BorderMode::Constant, 256.0));
         assert!(!run(&deriv_kernel(5, 1), BorderMode::Reflect101, 0.0));
         assert!(!run(&[0.5, 0.0, -0.5], BorderMode::Reflect101, 0.0));
+        // 255 · 200 · 4 would overflow i16.
+        assert!(!run(&[-100.0, 0.0, 100.0], BorderMode::Reflect101, 0.0));
+        assert!(run(&[-4.0, 0.0, 4.0], BorderMode::Reflect101, 0.0));
         let float = to_f32(&image);
         assert!(
             derivative_u8_3tap(&float, &kx, &ky, 1.0, 0.0, BorderMode::Reflect101, 0.0).is_none()
