@@ -8,6 +8,7 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use ocellus_engine::value::{Channels, Depth, Image, PixelFormat};
 use ocellus_nodes::capture::pattern::{Drawing, render};
 use ocellus_nodes::filter::border::BorderMode;
+use ocellus_nodes::filter::convolve::{ConvolveOptions, Kernel, convolve};
 use ocellus_nodes::filter::sobel::{scharr, sobel};
 
 /// A u8 test card: edges, gratings and ramps, so the data is not trivially compressible.
@@ -36,5 +37,33 @@ fn derivatives(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, derivatives);
+fn convolutions(c: &mut Criterion) {
+    let image = card(1920, 1080, Channels::Gray);
+    let sharpen = Kernel::from_rows(&[
+        vec![0.0, -1.0, 0.0],
+        vec![-1.0, 5.0, -1.0],
+        vec![0.0, -1.0, 0.0],
+    ]);
+    let binomial = [1.0, 4.0, 6.0, 4.0, 1.0];
+    let separable = Kernel::from_rows(
+        &binomial
+            .iter()
+            .map(|a| binomial.iter().map(|b| a * b / 256.0).collect())
+            .collect::<Vec<_>>(),
+    );
+    let (Ok(sharpen), Ok(separable)) = (sharpen, separable) else {
+        panic!("benchmark kernels");
+    };
+    for (name, kernel) in [
+        ("convolve dense 3x3/1080p gray u8", sharpen),
+        ("convolve separable 5x5/1080p gray u8", separable),
+    ] {
+        let options = ConvolveOptions::centred(&kernel);
+        c.bench_function(name, |b| {
+            b.iter(|| convolve(black_box(&image), &kernel, &options))
+        });
+    }
+}
+
+criterion_group!(benches, derivatives, convolutions);
 criterion_main!(benches);

@@ -185,12 +185,17 @@ pub fn separate(kernel: &Kernel) -> Option<(Vec<f64>, Vec<f64>)> {
     let p = kernel.at(pj, pi);
     let column: Vec<f64> = (0..h).map(|j| kernel.at(j, pi) / p).collect();
     let tolerance = SEPARABLE_TOLERANCE * largest;
-    for j in 0..h {
-        for i in 0..w {
-            if (kernel.at(j, i) - column[j] * row[i]).abs() > tolerance {
-                return None;
-            }
-        }
+    let matches = kernel
+        .weights
+        .chunks_exact(w)
+        .zip(&column)
+        .all(|(line, &c)| {
+            line.iter()
+                .zip(&row)
+                .all(|(&k, &r)| (k - c * r).abs() <= tolerance)
+        });
+    if !matches {
+        return None;
     }
     Some((column, row))
 }

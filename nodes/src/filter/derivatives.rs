@@ -69,7 +69,7 @@ fn check_sigma(name: &str, sigma: f64) -> Result<(), String> {
 }
 
 fn check_ksize(ksize: u32) -> Result<(), String> {
-    if ksize > MAX_KSIZE || (ksize != 0 && ksize % 2 == 0) {
+    if ksize > MAX_KSIZE || (ksize != 0 && ksize.is_multiple_of(2)) {
         return Err(format!(
             "`ksize` must be odd and at most {MAX_KSIZE} (or 0 to derive it from sigma), got {ksize}"
         ));

@@ -868,9 +868,8 @@ mod tests {
         };
         let image = random_u8(211, 150, Channels::Rgb, 5);
         let (kx, ky) = (deriv_kernel(3, 1), deriv_kernel(3, 0));
-        let run = || {
-            derivative_u8_3tap(&image, &kx, &ky, 1.0, 0.0, BorderMode::Reflect, 0.0).unwrap()
-        };
+        let run =
+            || derivative_u8_3tap(&image, &kx, &ky, 1.0, 0.0, BorderMode::Reflect, 0.0).unwrap();
         let one = pool(1).install(run);
         assert_eq!(one, pool(3).install(run));
         let generic = derivative_generic(&image, &kx, &ky, 1.0, 0.0, BorderMode::Reflect, 0.0);
