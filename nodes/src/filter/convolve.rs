@@ -706,6 +706,64 @@ mod tests {
     }
 
     #[test]
+    fn matches_opencv_values() {
+        // cv2.filter2D / cv2.sepFilter2D (ddepth -1) on img = (37x + 11y² + 5xy) mod 256, 7×5.
+        let image = Image::from_u8(
+            7,
+            5,
+            Channels::Gray,
+            (0..35)
+                .map(|k| {
+                    let (x, y) = (k % 7, k / 7);
+                    ((37 * x + 11 * y * y + 5 * x * y) % 256) as u8
+                })
+                .collect(),
+        )
+        .unwrap();
+        let k = kernel(&[&[0.1, -0.2, 0.3], &[0.25, 0.5, -0.15], &[0.05, 0.1, 0.05]]);
+        let check = |got: &Image, expected: &[u8]| {
+            for (a, &b) in got.as_u8().unwrap().iter().zip(expected) {
+                assert!((i32::from(*a) - i32::from(b)).abs() <= 1, "{a} vs {b}");
+            }
+        };
+        let expected = [
+            29, 37, 76, 115, 154, 103, 239, 39, 48, 90, 132, 161, 216, 65, 75, 85, 132, 166, 226,
+            55, 150, 133, 131, 158, 235, 82, 109, 104, 177, 226, 153, 55, 135, 190, 60,
+        ];
+        check(
+            &convolve(&image, &k, &ConvolveOptions::centred(&k)),
+            &expected,
+        );
+        let o = ConvolveOptions {
+            anchor: [0, 2],
+            delta: 7.0,
+            border: BorderMode::Clamp,
+            ..ConvolveOptions::centred(&k)
+        };
+        let expected = [
+            37, 74, 111, 148, 185, 214, 229, 40, 78, 116, 154, 179, 184, 186, 55, 97, 139, 168,
+            223, 117, 70, 92, 139, 173, 233, 62, 88, 81, 138, 165, 242, 89, 116, 107, 115,
+        ];
+        check(&convolve(&image, &k, &o), &expected);
+        // sepFilter2D(kernelX = [−1 3 −1], kernelY = [¼ ½ ¼]), border reflect.
+        let k = kernel(&[
+            &[-0.25, 0.75, -0.25],
+            &[-0.5, 1.5, -0.5],
+            &[-0.25, 0.75, -0.25],
+        ]);
+        assert!(separate(&k).is_some());
+        let o = ConvolveOptions {
+            border: BorderMode::Reflect,
+            ..ConvolveOptions::centred(&k)
+        };
+        let expected = [
+            0, 41, 79, 118, 156, 255, 142, 0, 58, 100, 142, 248, 226, 0, 2, 96, 144, 254, 238, 28,
+            58, 52, 220, 80, 255, 56, 108, 84, 101, 255, 0, 196, 60, 255, 0,
+        ];
+        check(&convolve(&image, &k, &o), &expected);
+    }
+
+    #[test]
     fn rank_one_detection() {
         let (col, row) = separate(&kernel(&[&[1.0, 2.0, 1.0], &[2.0, 4.0, 2.0]])).unwrap();
         assert_eq!(col, [0.5, 1.0]);
