@@ -559,12 +559,8 @@ fn dense_bands<T: Sample>(
                 for (j, row_taps) in &taps {
                     let slot = (y + j) % kh;
                     let padded = &ring[slot * padded_len..(slot + 1) * padded_len];
-                    for &(offset, w) in row_taps {
-                        if let Some(shifted) = padded.get(offset..offset + n) {
-                            for (a, &x) in acc.iter_mut().zip(shifted) {
-                                *a += w * x;
-                            }
-                        }
+                    for group in row_taps.chunks(4) {
+                        accumulate_taps(&mut acc, padded, group);
                     }
                 }
                 if sx == 1 {
@@ -577,6 +573,43 @@ fn dense_bands<T: Sample>(
             }
         });
     dst
+}
+
+/// `acc[x] += w₀·row[x + o₀] + w₁·row[x + o₁] + …` for up to four `(offset, weight)` taps in
+/// one pass (the sums are added to `acc` left to right, tap by tap, exactly as one pass per
+/// tap would).
+fn accumulate_taps(acc: &mut [f32], row: &[f32], taps: &[(usize, f32)]) {
+    let n = acc.len();
+    let tap = |k: usize| {
+        taps.get(k)
+            .and_then(|&(offset, w)| Some((row.get(offset..offset + n)?, w)))
+    };
+    match (tap(0), tap(1), tap(2), tap(3)) {
+        (Some((r0, w0)), Some((r1, w1)), Some((r2, w2)), Some((r3, w3))) => {
+            for ((((a, &x0), &x1), &x2), &x3) in acc.iter_mut().zip(r0).zip(r1).zip(r2).zip(r3) {
+                *a = *a + w0 * x0 + w1 * x1 + w2 * x2 + w3 * x3;
+            }
+        }
+        (Some((r0, w0)), Some((r1, w1)), Some((r2, w2)), None) => {
+            for (((a, &x0), &x1), &x2) in acc.iter_mut().zip(r0).zip(r1).zip(r2) {
+                *a = *a + w0 * x0 + w1 * x1 + w2 * x2;
+            }
+        }
+        (Some((r0, w0)), Some((r1, w1)), None, None) => {
+            for ((a, &x0), &x1) in acc.iter_mut().zip(r0).zip(r1) {
+                *a = *a + w0 * x0 + w1 * x1;
+            }
+        }
+        _ => {
+            for &(offset, w) in taps {
+                if let Some(shifted) = row.get(offset..offset + n) {
+                    for (a, &x) in acc.iter_mut().zip(shifted) {
+                        *a += w * x;
+                    }
+                }
+            }
+        }
+    }
 }
 
 #[cfg(test)]

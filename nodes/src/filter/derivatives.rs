@@ -10,11 +10,11 @@
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
-use ocellus_engine::value::{Image, PixelData, Value};
+use ocellus_engine::value::{Channels, Image, PixelData, Value};
 
 use super::border::{BorderMode, check_border_value};
 use super::gaussian::{auto_ksize, gaussian_blur, gaussian_kernel, separable_filter};
-use super::sobel::{SOBEL_KSIZES, check_common, deriv_kernel, derivative, to_f32};
+use super::sobel::{SOBEL_KSIZES, check_common, deriv_kernel, derivative, derivative_sum, to_f32};
 
 /// Largest sigma the Gaussian-based filters take, in px.
 pub const MAX_SIGMA: f64 = 1000.0;
@@ -31,31 +31,37 @@ fn add_f32(a: Image, b: &Image) -> Image {
     combine_f32(a, b, |x, y| x + y)
 }
 
-/// `f(a, b)` sample by sample for two f32 images of the same shape (`a` unchanged otherwise).
+/// `f(a, b)` sample by sample for two f32 images of the same shape, in place in `a`'s samples
+/// (`a` unchanged when the shapes or depths differ).
 fn combine_f32(a: Image, b: &Image, f: impl Fn(f32, f32) -> f32) -> Image {
-    let (Some(av), Some(bv)) = (a.as_f32(), b.as_f32()) else {
+    let (width, height, channels) = (a.width(), a.height(), a.channels());
+    let Some(bv) = b.as_f32() else {
         return a;
     };
-    if av.len() != bv.len() {
-        return a;
-    }
-    let values = av.iter().zip(bv).map(|(&x, &y)| f(x, y)).collect();
-    Image::from_f32(a.width(), a.height(), a.channels(), values).unwrap_or(a)
+    let data = match a.into_data() {
+        PixelData::F32(mut av) => {
+            if av.len() == bv.len() {
+                for (x, &y) in av.iter_mut().zip(bv) {
+                    *x = f(*x, y);
+                }
+            }
+            PixelData::F32(av)
+        }
+        other => other,
+    };
+    rebuild(width, height, channels, data, b)
 }
 
-/// `scale · v + delta` for every sample of an f32 image (in f64, as `filter.sobel`).
-fn scale_delta(image: Image, scale: f64, delta: f64) -> Image {
-    if scale == 1.0 && delta == 0.0 {
-        return image;
-    }
-    let Some(v) = image.as_f32() else {
-        return image;
-    };
-    let values = v
-        .iter()
-        .map(|&x| (f64::from(x) * scale + delta) as f32)
-        .collect();
-    Image::from_f32(image.width(), image.height(), image.channels(), values).unwrap_or(image)
+/// The image of the given shape holding `data`; `fallback` (cloned) if they do not match, which
+/// the callers rule out.
+fn rebuild(
+    width: usize,
+    height: usize,
+    channels: Channels,
+    data: PixelData,
+    fallback: &Image,
+) -> Image {
+    Image::new(width, height, channels, data).unwrap_or_else(|_| fallback.clone())
 }
 
 fn check_sigma(name: &str, sigma: f64) -> Result<(), String> {
@@ -318,22 +324,19 @@ pub fn laplacian(
     border: BorderMode,
     border_value: f64,
 ) -> Image {
-    let run = |kx: &[f64], ky: &[f64]| derivative(image, kx, ky, 1.0, 0.0, border, border_value);
-    let sum = if ksize <= 1 {
-        if eight {
-            // Box sum of the 3×3 neighbourhood minus nine times the centre.
-            let ones = [1.0, 1.0, 1.0];
-            combine_f32(run(&ones, &ones), &to_f32(image), |b, x| b - 9.0 * x)
-        } else {
-            // [1 −2 1] along x plus along y; [0 1 0] keeps the 3-tap integer path.
-            let (second, identity) = ([1.0, -2.0, 1.0], [0.0, 1.0, 0.0]);
-            add_f32(run(&second, &identity), &run(&identity, &second))
-        }
+    let ones = [1.0, 1.0, 1.0];
+    let (second, identity, minus_nine) = ([1.0, -2.0, 1.0], [0.0, 1.0, 0.0], [0.0, -9.0, 0.0]);
+    let (d2, smooth) = (deriv_kernel(ksize, 2), deriv_kernel(ksize, 0));
+    let terms: [(&[f64], &[f64]); 2] = if ksize > 1 {
+        [(&d2, &smooth), (&smooth, &d2)]
+    } else if eight {
+        // Box sum of the 3×3 neighbourhood minus nine times the centre.
+        [(&ones, &ones), (&identity, &minus_nine)]
     } else {
-        let (second, smooth) = (deriv_kernel(ksize, 2), deriv_kernel(ksize, 0));
-        add_f32(run(&second, &smooth), &run(&smooth, &second))
+        // [1 −2 1] along x plus along y; [0 1 0] keeps the 3-tap integer path.
+        [(&second, &identity), (&identity, &second)]
     };
-    scale_delta(sum, scale, delta)
+    derivative_sum(image, &terms, scale, delta, border, border_value)
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -738,7 +741,6 @@ mod tests {
     use super::*;
     use crate::filter::convolve::{ConvolveOptions, Kernel, OutputDepth, correlate_dense};
     use crate::filter::test_support::{MODES, random_u8, randoms};
-    use ocellus_engine::value::Channels;
     use proptest::prelude::*;
 
     fn samples(image: &Image) -> Vec<f64> {
@@ -852,6 +854,22 @@ mod tests {
                         direct(&image, kernel, mode, v),
                         "{w}×{h} {mode:?} ksize {ksize} eight {eight_n}"
                     );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn laplacian_integer_path_equals_float_path() {
+        // u8 input takes the one-pass integer path, its f32 copy the general one.
+        let image = random_u8(37, 23, Channels::Rgb, 11);
+        let float = to_f32(&image);
+        for mode in MODES {
+            let v = constant_for(mode);
+            for (eight, ksize) in [(false, 1), (true, 1), (false, 3), (false, 5)] {
+                for (scale, delta) in [(1.0, 0.0), (0.3, -2.5)] {
+                    let run = |i: &Image| laplacian(i, eight, ksize, scale, delta, mode, v);
+                    assert_eq!(run(&image), run(&float), "{mode:?} {eight} {ksize}");
                 }
             }
         }

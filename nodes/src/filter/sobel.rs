@@ -252,6 +252,45 @@ pub(crate) fn derivative(
     derivative_generic(image, kx, ky, scale, delta, border, border_value)
 }
 
+/// `scale · Σ_t separable_filter(f32 copy of image, kx_t, ky_t) + delta` over the `(kx, ky)`
+/// terms (sums of separable derivatives, such as the Laplacian), in one pass through the integer
+/// path where every term qualifies for it. Results are the same either way (exact integers for
+/// u8 input).
+pub(crate) fn derivative_sum(
+    image: &Image,
+    terms: &[(&[f64], &[f64])],
+    scale: f64,
+    delta: f64,
+    border: BorderMode,
+    border_value: f64,
+) -> Image {
+    if let Some(fast) = sum_u8_3tap(image, terms, scale, delta, border, border_value) {
+        return fast;
+    }
+    let mut total: Option<Vec<f32>> = None;
+    for (kx, ky) in terms {
+        let term = derivative_generic(image, kx, ky, 1.0, 0.0, border, border_value);
+        let values = term.as_f32().unwrap_or(&[]);
+        match total.as_mut() {
+            None => total = Some(values.to_vec()),
+            Some(sum) => {
+                for (t, &v) in sum.iter_mut().zip(values) {
+                    *t += v;
+                }
+            }
+        }
+    }
+    let plain = scale == 1.0 && delta == 0.0;
+    let mut values = total.unwrap_or_else(|| vec![0.0; image.data().len()]);
+    if !plain {
+        for v in &mut values {
+            *v = (f64::from(*v) * scale + delta) as f32;
+        }
+    }
+    Image::from_f32(image.width(), image.height(), image.channels(), values)
+        .unwrap_or_else(|_| to_f32(image))
+}
+
 /// Output rows per parallel band of the integer path.
 const BAND_ROWS: usize = 32;
 
@@ -270,9 +309,7 @@ fn abs_sum(taps: [i16; 3]) -> i32 {
 }
 
 /// The exact integer path for u8 images and 3-tap integer kernels (module docs); `None` when
-/// it does not apply: other depths or kernels, kernels whose results could leave i16
-/// (`255 · Σ|kx| · Σ|ky| > 32767`), or a constant border value that is not an integer in
-/// 0..=255.
+/// it does not apply (see [`sum_u8_3tap`]).
 fn derivative_u8_3tap(
     image: &Image,
     kx: &[f64],
@@ -282,10 +319,32 @@ fn derivative_u8_3tap(
     border: BorderMode,
     border_value: f64,
 ) -> Option<Image> {
+    sum_u8_3tap(image, &[(kx, ky)], scale, delta, border, border_value)
+}
+
+/// The integer path for a sum of separable terms: per output row, each term's vertical pass
+/// into an i16 row and its horizontal pass written (first term) or added (others) to the f32
+/// output row. `None` when it does not apply: not u8, no terms, a kernel that is not 3 integer
+/// taps, a term whose results could leave i16 (`255 · Σ|kx| · Σ|ky| > 32767`), or a constant
+/// border value that is not an integer in 0..=255.
+fn sum_u8_3tap(
+    image: &Image,
+    terms: &[(&[f64], &[f64])],
+    scale: f64,
+    delta: f64,
+    border: BorderMode,
+    border_value: f64,
+) -> Option<Image> {
     let src = image.as_u8()?;
-    let kx = integer_taps(kx)?;
-    let ky = integer_taps(ky)?;
-    if 255 * abs_sum(kx) * abs_sum(ky) > i32::from(i16::MAX) {
+    let mut kernels = Vec::with_capacity(terms.len());
+    for (kx, ky) in terms {
+        let (kx, ky) = (integer_taps(kx)?, integer_taps(ky)?);
+        if 255 * abs_sum(kx) * abs_sum(ky) > i32::from(i16::MAX) {
+            return None;
+        }
+        kernels.push((kx, ky));
+    }
+    if kernels.is_empty() {
         return None;
     }
     let constant = if border == BorderMode::Constant {
@@ -305,8 +364,6 @@ fn derivative_u8_3tap(
     let rows = BorderTable::new(height, 1, 1, border);
     let columns = BorderTable::new(width, 1, 1, border);
     let constant_row = vec![constant; n];
-    // A column outside the image reads the constant in all three rows.
-    let edge = i16::from(constant) * (ky[0] + ky[1] + ky[2]);
     let row = |k: usize| {
         rows.source(k)
             .and_then(|r| src.get(r * n..(r + 1) * n))
@@ -320,9 +377,11 @@ fn derivative_u8_3tap(
             }
         }
     };
-    // Output row y reads extended rows y, y + 1, y + 2 (source rows y − 1, y, y + 1).
-    let vertical = |y: usize, sums: &mut [i16]| {
+    // Output row y reads extended rows y, y + 1, y + 2 (source rows y − 1, y, y + 1). A column
+    // outside the image reads the constant in all three rows.
+    let vertical = |y: usize, ky: [i16; 3], sums: &mut [i16]| {
         vertical_3tap(row(y), row(y + 1), row(y + 2), ky, &mut sums[c..c + n]);
+        let edge = i16::from(constant) * (ky[0] + ky[1] + ky[2]);
         pad_edges(sums, c, n, &columns, edge);
     };
     let dst = if rayon::current_num_threads() == 1 {
@@ -330,9 +389,15 @@ fn derivative_u8_3tap(
         let mut dst = Vec::with_capacity(src.len());
         let mut sums = vec![0i16; n + 2 * c];
         for y in 0..height {
-            vertical(y, &mut sums);
             let start = dst.len();
-            horizontal_3tap(&sums, c, kx, Output::Append(&mut dst));
+            for (t, &(kx, ky)) in kernels.iter().enumerate() {
+                vertical(y, ky, &mut sums);
+                if t == 0 {
+                    horizontal_3tap(&sums, c, kx, Output::Append(&mut dst));
+                } else {
+                    horizontal_3tap(&sums, c, kx, Output::Add(&mut dst[start..]));
+                }
+            }
             scale_row(&mut dst[start..]);
         }
         dst
@@ -343,8 +408,15 @@ fn derivative_u8_3tap(
             .for_each(|(band, out)| {
                 let mut sums = vec![0i16; n + 2 * c];
                 for (r, line) in out.chunks_exact_mut(n).enumerate() {
-                    vertical(band * BAND_ROWS + r, &mut sums);
-                    horizontal_3tap(&sums, c, kx, Output::Write(line));
+                    for (t, &(kx, ky)) in kernels.iter().enumerate() {
+                        vertical(band * BAND_ROWS + r, ky, &mut sums);
+                        let target = if t == 0 {
+                            Output::Write(&mut *line)
+                        } else {
+                            Output::Add(&mut *line)
+                        };
+                        horizontal_3tap(&sums, c, kx, target);
+                    }
                     scale_row(line);
                 }
             });
@@ -423,6 +495,8 @@ enum Output<'a> {
     Write(&'a mut [f32]),
     /// Append the row to the output built so far.
     Append(&'a mut Vec<f32>),
+    /// Add to this row (exact: the sums of integers stay far below 2²⁴).
+    Add(&'a mut [f32]),
 }
 
 /// `k0·s[i] + k1·s[i + c] + k2·s[i + 2c]` in i16 for the `sums.len() − 2c` samples of a row,
@@ -470,6 +544,11 @@ fn horizontal_taps(a: &[i16], b: &[i16], c: &[i16], k: [i16; 3], out: Output<'_>
             }
         }
         Output::Append(dst) => dst.extend(values),
+        Output::Add(line) => {
+            for (o, v) in line.iter_mut().zip(values) {
+                *o += v;
+            }
+        }
     }
 }
 
