@@ -26,6 +26,12 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::box_filter::BoxFilter>()?;
     registry.register::<filter::sobel::Sobel>()?;
     registry.register::<filter::sobel::Scharr>()?;
+    registry.register::<filter::convolve::Convolve>()?;
+    registry.register::<filter::derivatives::Prewitt>()?;
+    registry.register::<filter::derivatives::Laplacian>()?;
+    registry.register::<filter::derivatives::Log>()?;
+    registry.register::<filter::derivatives::Dog>()?;
+    registry.register::<filter::derivatives::Unsharp>()?;
     registry.register::<filter::morphology::Erode>()?;
     registry.register::<filter::morphology::Dilate>()?;
     registry.register::<filter::morphology::Morphology>()?;

@@ -7,6 +7,8 @@ pub mod color;
 pub mod composite;
 pub mod convert;
 pub mod frequency;
+pub mod convolve;
+pub mod derivatives;
 pub mod gaussian;
 pub mod grayscale;
 pub mod kuwahara;

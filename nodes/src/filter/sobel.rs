@@ -3,13 +3,21 @@
 //! Both run on [`separable_filter`] over an f32 copy of the input, so u8 input gives exact
 //! integer results (every product and partial sum is an integer far below 2²⁴), and the output
 //! is always f32 with the input's channels, each filtered on its own.
+//!
+//! u8 images with 3-tap integer kernels (Sobel ksize 3, Scharr, Prewitt, the Laplacian
+//! stencils) take an integer fast path instead: per output row, the vertical pass sums three
+//! source rows into an i16 row, which is padded through the border table and correlated
+//! horizontally in i16, converted straight to f32. The common kernels are compiled with their
+//! weights as constants. Every intermediate is the same exact integer as in the f32 path (the
+//! path is taken only when no result can leave i16), so the results are bit-identical.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
+use rayon::prelude::*;
 
-use super::border::{BorderMode, check_border_value};
+use super::border::{BorderMode, BorderTable, check_border_value};
 use super::gaussian::separable_filter;
 
 /// Kernel sizes `filter.sobel` accepts.
@@ -131,7 +139,7 @@ Example:
 
 /// Checks shared by both operators: finite scale, delta and border value, and a border value
 /// only with border "constant".
-fn check_common(
+pub(crate) fn check_common(
     scale: f64,
     delta: f64,
     border: BorderMode,
@@ -227,8 +235,325 @@ pub fn sobel(
     )
 }
 
-/// `scale · separable_filter(f32 copy of image, kx, ky) + delta`.
-fn derivative(
+/// `scale · separable_filter(f32 copy of image, kx, ky) + delta`, through the integer path
+/// ([`derivative_u8_3tap`]) where it applies.
+pub(crate) fn derivative(
+    image: &Image,
+    kx: &[f64],
+    ky: &[f64],
+    scale: f64,
+    delta: f64,
+    border: BorderMode,
+    border_value: f64,
+) -> Image {
+    if let Some(fast) = derivative_u8_3tap(image, kx, ky, scale, delta, border, border_value) {
+        return fast;
+    }
+    derivative_generic(image, kx, ky, scale, delta, border, border_value)
+}
+
+/// `scale · Σ_t separable_filter(f32 copy of image, kx_t, ky_t) + delta` over the `(kx, ky)`
+/// terms (sums of separable derivatives, such as the Laplacian), in one pass through the integer
+/// path where every term qualifies for it. Results are the same either way (exact integers for
+/// u8 input).
+pub(crate) fn derivative_sum(
+    image: &Image,
+    terms: &[(&[f64], &[f64])],
+    scale: f64,
+    delta: f64,
+    border: BorderMode,
+    border_value: f64,
+) -> Image {
+    if let Some(fast) = sum_u8_3tap(image, terms, scale, delta, border, border_value) {
+        return fast;
+    }
+    let mut total: Option<Vec<f32>> = None;
+    for (kx, ky) in terms {
+        let term = derivative_generic(image, kx, ky, 1.0, 0.0, border, border_value);
+        let values = term.as_f32().unwrap_or(&[]);
+        match total.as_mut() {
+            None => total = Some(values.to_vec()),
+            Some(sum) => {
+                for (t, &v) in sum.iter_mut().zip(values) {
+                    *t += v;
+                }
+            }
+        }
+    }
+    let plain = scale == 1.0 && delta == 0.0;
+    let mut values = total.unwrap_or_else(|| vec![0.0; image.data().len()]);
+    if !plain {
+        for v in &mut values {
+            *v = (f64::from(*v) * scale + delta) as f32;
+        }
+    }
+    Image::from_f32(image.width(), image.height(), image.channels(), values)
+        .unwrap_or_else(|_| to_f32(image))
+}
+
+/// Output rows per parallel band of the integer path.
+const BAND_ROWS: usize = 32;
+
+/// The taps of a 3-tap kernel as integers when every weight is an integer.
+fn integer_taps(kernel: &[f64]) -> Option<[i16; 3]> {
+    let taps: [f64; 3] = kernel.try_into().ok()?;
+    if taps.iter().any(|w| w.fract() != 0.0 || w.abs() > 255.0) {
+        return None;
+    }
+    Some(taps.map(|w| w as i16))
+}
+
+/// `Σ|w|` of a kernel.
+fn abs_sum(taps: [i16; 3]) -> i32 {
+    taps.iter().map(|&w| i32::from(w).abs()).sum()
+}
+
+/// The exact integer path for u8 images and 3-tap integer kernels (module docs); `None` when
+/// it does not apply (see [`sum_u8_3tap`]).
+fn derivative_u8_3tap(
+    image: &Image,
+    kx: &[f64],
+    ky: &[f64],
+    scale: f64,
+    delta: f64,
+    border: BorderMode,
+    border_value: f64,
+) -> Option<Image> {
+    sum_u8_3tap(image, &[(kx, ky)], scale, delta, border, border_value)
+}
+
+/// The integer path for a sum of separable terms: per output row, each term's vertical pass
+/// into an i16 row and its horizontal pass written (first term) or added (others) to the f32
+/// output row. `None` when it does not apply: not u8, no terms, a kernel that is not 3 integer
+/// taps, a term whose results could leave i16 (`255 · Σ|kx| · Σ|ky| > 32767`), or a constant
+/// border value that is not an integer in 0..=255.
+fn sum_u8_3tap(
+    image: &Image,
+    terms: &[(&[f64], &[f64])],
+    scale: f64,
+    delta: f64,
+    border: BorderMode,
+    border_value: f64,
+) -> Option<Image> {
+    let src = image.as_u8()?;
+    let mut kernels = Vec::with_capacity(terms.len());
+    for (kx, ky) in terms {
+        let (kx, ky) = (integer_taps(kx)?, integer_taps(ky)?);
+        if 255 * abs_sum(kx) * abs_sum(ky) > i32::from(i16::MAX) {
+            return None;
+        }
+        kernels.push((kx, ky));
+    }
+    if kernels.is_empty() {
+        return None;
+    }
+    let constant = if border == BorderMode::Constant {
+        if border_value.fract() != 0.0 || !(0.0..=255.0).contains(&border_value) {
+            return None;
+        }
+        border_value as u8
+    } else {
+        0
+    };
+    let (width, height, channels) = (image.width(), image.height(), image.channels());
+    let c = channels.count();
+    let n = width * c;
+    if n == 0 || height == 0 {
+        return Image::from_f32(width, height, channels, vec![0.0; src.len()]).ok();
+    }
+    let rows = BorderTable::new(height, 1, 1, border);
+    let columns = BorderTable::new(width, 1, 1, border);
+    let constant_row = vec![constant; n];
+    let row = |k: usize| {
+        rows.source(k)
+            .and_then(|r| src.get(r * n..(r + 1) * n))
+            .unwrap_or(&constant_row)
+    };
+    let plain = scale == 1.0 && delta == 0.0;
+    let scale_row = |line: &mut [f32]| {
+        if !plain {
+            for v in line.iter_mut() {
+                *v = (f64::from(*v) * scale + delta) as f32;
+            }
+        }
+    };
+    // Output row y reads extended rows y, y + 1, y + 2 (source rows y − 1, y, y + 1). A column
+    // outside the image reads the constant in all three rows.
+    let vertical = |y: usize, ky: [i16; 3], sums: &mut [i16]| {
+        vertical_3tap(row(y), row(y + 1), row(y + 2), ky, &mut sums[c..c + n]);
+        let edge = i16::from(constant) * (ky[0] + ky[1] + ky[2]);
+        pad_edges(sums, c, n, &columns, edge);
+    };
+    let dst = if rayon::current_num_threads() == 1 {
+        // One thread: append row by row, which spares zero-filling the output first.
+        let mut dst = Vec::with_capacity(src.len());
+        let mut sums = vec![0i16; n + 2 * c];
+        for y in 0..height {
+            let start = dst.len();
+            for (t, &(kx, ky)) in kernels.iter().enumerate() {
+                vertical(y, ky, &mut sums);
+                if t == 0 {
+                    horizontal_3tap(&sums, c, kx, Output::Append(&mut dst));
+                } else {
+                    horizontal_3tap(&sums, c, kx, Output::Add(&mut dst[start..]));
+                }
+            }
+            scale_row(&mut dst[start..]);
+        }
+        dst
+    } else {
+        let mut dst = vec![0.0f32; src.len()];
+        dst.par_chunks_mut(BAND_ROWS * n)
+            .enumerate()
+            .for_each(|(band, out)| {
+                let mut sums = vec![0i16; n + 2 * c];
+                for (r, line) in out.chunks_exact_mut(n).enumerate() {
+                    for (t, &(kx, ky)) in kernels.iter().enumerate() {
+                        vertical(band * BAND_ROWS + r, ky, &mut sums);
+                        let target = if t == 0 {
+                            Output::Write(&mut *line)
+                        } else {
+                            Output::Add(&mut *line)
+                        };
+                        horizontal_3tap(&sums, c, kx, target);
+                    }
+                    scale_row(line);
+                }
+            });
+        dst
+    };
+    Image::from_f32(width, height, channels, dst).ok()
+}
+
+/// Calls `$f::<A, B, C>` for the common 3-tap kernels (so that their weights are constants the
+/// compiler folds into shifts and adds), `$general` otherwise.
+macro_rules! dispatch_taps {
+    ($k:expr, $f:ident, $general:expr, ($($arg:expr),*)) => {
+        match $k {
+            [1, 2, 1] => $f::<1, 2, 1>($($arg),*),
+            [-1, 0, 1] => $f::<-1, 0, 1>($($arg),*),
+            [1, -2, 1] => $f::<1, -2, 1>($($arg),*),
+            [3, 10, 3] => $f::<3, 10, 3>($($arg),*),
+            [1, 1, 1] => $f::<1, 1, 1>($($arg),*),
+            [0, 1, 0] => $f::<0, 1, 0>($($arg),*),
+            _ => $general,
+        }
+    };
+}
+
+/// `out[i] = k0·a[i] + k1·b[i] + k2·c[i]` in i16 (no overflow: see [`derivative_u8_3tap`]).
+fn vertical_3tap(a: &[u8], b: &[u8], c: &[u8], k: [i16; 3], out: &mut [i16]) {
+    dispatch_taps!(
+        k,
+        vertical_const,
+        vertical_taps(a, b, c, k, out),
+        (a, b, c, out)
+    )
+}
+
+fn vertical_const<const K0: i16, const K1: i16, const K2: i16>(
+    a: &[u8],
+    b: &[u8],
+    c: &[u8],
+    out: &mut [i16],
+) {
+    vertical_taps(a, b, c, [K0, K1, K2], out);
+}
+
+#[inline(always)]
+fn vertical_taps(a: &[u8], b: &[u8], c: &[u8], k: [i16; 3], out: &mut [i16]) {
+    let n = out.len().min(a.len()).min(b.len()).min(c.len());
+    let (a, b, c, out) = (&a[..n], &b[..n], &c[..n], &mut out[..n]);
+    for i in 0..n {
+        out[i] = k[0]
+            .wrapping_mul(i16::from(a[i]))
+            .wrapping_add(k[1].wrapping_mul(i16::from(b[i])))
+            .wrapping_add(k[2].wrapping_mul(i16::from(c[i])));
+    }
+}
+
+/// Fills the one-pixel margins of `sums` (`c` samples each side of the `n` inner samples)
+/// through the column border table; pixels reading the constant get `edge`.
+fn pad_edges(sums: &mut [i16], c: usize, n: usize, columns: &BorderTable, edge: i16) {
+    let width = n / c.max(1);
+    for (position, start) in [(0, 0), (width + 1, c + n)] {
+        for ch in 0..c {
+            let value = match columns.source(position) {
+                Some(s) => sums.get(c + s * c + ch).copied().unwrap_or(edge),
+                None => edge,
+            };
+            if let Some(slot) = sums.get_mut(start + ch) {
+                *slot = value;
+            }
+        }
+    }
+}
+
+/// Where the horizontal pass puts a row of results.
+enum Output<'a> {
+    /// Overwrite this row.
+    Write(&'a mut [f32]),
+    /// Append the row to the output built so far.
+    Append(&'a mut Vec<f32>),
+    /// Add to this row (exact: the sums of integers stay far below 2²⁴).
+    Add(&'a mut [f32]),
+}
+
+/// `k0·s[i] + k1·s[i + c] + k2·s[i + 2c]` in i16 for the `sums.len() − 2c` samples of a row,
+/// as f32 (exact: see [`derivative_u8_3tap`]).
+fn horizontal_3tap(sums: &[i16], c: usize, k: [i16; 3], out: Output<'_>) {
+    let n = sums.len().saturating_sub(2 * c);
+    let (Some(a), Some(b), Some(d)) = (
+        sums.get(..n),
+        sums.get(c..c + n),
+        sums.get(2 * c..2 * c + n),
+    ) else {
+        return;
+    };
+    dispatch_taps!(
+        k,
+        horizontal_const,
+        horizontal_taps(a, b, d, k, out),
+        (a, b, d, out)
+    )
+}
+
+fn horizontal_const<const K0: i16, const K1: i16, const K2: i16>(
+    a: &[i16],
+    b: &[i16],
+    c: &[i16],
+    out: Output<'_>,
+) {
+    horizontal_taps(a, b, c, [K0, K1, K2], out);
+}
+
+#[inline(always)]
+fn horizontal_taps(a: &[i16], b: &[i16], c: &[i16], k: [i16; 3], out: Output<'_>) {
+    let tap = move |((&a, &b), &c): ((&i16, &i16), &i16)| {
+        let v = k[0]
+            .wrapping_mul(a)
+            .wrapping_add(k[1].wrapping_mul(b))
+            .wrapping_add(k[2].wrapping_mul(c));
+        f32::from(v)
+    };
+    let values = a.iter().zip(b).zip(c).map(tap);
+    match out {
+        Output::Write(line) => {
+            for (o, v) in line.iter_mut().zip(values) {
+                *o = v;
+            }
+        }
+        Output::Append(dst) => dst.extend(values),
+        Output::Add(line) => {
+            for (o, v) in line.iter_mut().zip(values) {
+                *o += v;
+            }
+        }
+    }
+}
+
+/// The general path: `scale · separable_filter(f32 copy of image, kx, ky) + delta`.
+fn derivative_generic(
     image: &Image,
     kx: &[f64],
     ky: &[f64],
@@ -256,7 +581,7 @@ fn derivative(
 }
 
 /// The samples of `image` as f32 (exact for u8 and u16).
-fn to_f32(image: &Image) -> Image {
+pub(crate) fn to_f32(image: &Image) -> Image {
     let data: Vec<f32> = match image.data() {
         PixelData::U8(v) => v.iter().map(|&x| f32::from(x)).collect(),
         PixelData::U16(v) => v.iter().map(|&x| f32::from(x)).collect(),
@@ -613,6 +938,24 @@ mod tests {
     }
 
     #[test]
+    fn integer_path_identical_for_any_thread_count() {
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
+        let image = random_u8(211, 150, Channels::Rgb, 5);
+        let (kx, ky) = (deriv_kernel(3, 1), deriv_kernel(3, 0));
+        let run =
+            || derivative_u8_3tap(&image, &kx, &ky, 1.0, 0.0, BorderMode::Reflect, 0.0).unwrap();
+        let one = pool(1).install(run);
+        assert_eq!(one, pool(3).install(run));
+        let generic = derivative_generic(&image, &kx, &ky, 1.0, 0.0, BorderMode::Reflect, 0.0);
+        assert_eq!(one, generic);
+    }
+
+    #[test]
     fn tiny_and_empty_images() {
         let one = Image::from_u8(1, 1, Channels::Gray, vec![200]).unwrap();
         let d = sobel(&one, 1, 0, 3, 1.0, 0.0, BorderMode::Reflect101, 0.0);
@@ -660,5 +1003,59 @@ mod tests {
         assert!(Scharr::new(scharr(0, 1)).is_ok());
         assert!(Scharr::new(scharr(1, 1)).is_err());
         assert!(Scharr::new(scharr(0, 0)).is_err());
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(64))]
+        #[test]
+        fn integer_path_equals_float_path(
+            w in 0usize..20,
+            h in 0usize..20,
+            rgb in proptest::bool::ANY,
+            seed in 0u64..1000,
+            kernel in 0usize..5,
+            mode in 0usize..5,
+            constant in 0u8..=255,
+            scaled in proptest::bool::ANY,
+        ) {
+            let channels = if rgb { Channels::Rgb } else { Channels::Gray };
+            let image = random_u8(w, h, channels, seed);
+            let border = MODES[mode];
+            let value = if border == BorderMode::Constant { f64::from(constant) } else { 0.0 };
+            let (scale, delta) = if scaled { (0.37, -5.25) } else { (1.0, 0.0) };
+            let (kx, ky) = match kernel {
+                0 => (deriv_kernel(3, 1), deriv_kernel(3, 0)),
+                1 => (deriv_kernel(3, 0), deriv_kernel(3, 1)),
+                2 => (deriv_kernel(3, 2), deriv_kernel(3, 1)),
+                3 => (vec![-1.0, 0.0, 1.0], SCHARR_SMOOTHING.to_vec()),
+                _ => (SCHARR_SMOOTHING.to_vec(), vec![-1.0, 0.0, 1.0]),
+            };
+            let fast = derivative_u8_3tap(&image, &kx, &ky, scale, delta, border, value);
+            proptest::prop_assert!(fast.is_some());
+            let generic = derivative_generic(&image, &kx, &ky, scale, delta, border, value);
+            proptest::prop_assert_eq!(fast.unwrap(), generic);
+        }
+    }
+
+    #[test]
+    fn integer_path_only_where_exact() {
+        let image = random_u8(5, 4, Channels::Gray, 3);
+        let (kx, ky) = (deriv_kernel(3, 1), deriv_kernel(3, 0));
+        let run = |kx: &[f64], border, value| {
+            derivative_u8_3tap(&image, kx, &ky, 1.0, 0.0, border, value).is_some()
+        };
+        assert!(run(&kx, BorderMode::Reflect101, 0.0));
+        assert!(run(&kx, BorderMode::Constant, 255.0));
+        assert!(!run(&kx, BorderMode::Constant, 99.5));
+        assert!(!run(&kx, BorderMode::Constant, 256.0));
+        assert!(!run(&deriv_kernel(5, 1), BorderMode::Reflect101, 0.0));
+        assert!(!run(&[0.5, 0.0, -0.5], BorderMode::Reflect101, 0.0));
+        // 255 · 200 · 4 would overflow i16.
+        assert!(!run(&[-100.0, 0.0, 100.0], BorderMode::Reflect101, 0.0));
+        assert!(run(&[-4.0, 0.0, 4.0], BorderMode::Reflect101, 0.0));
+        let float = to_f32(&image);
+        assert!(
+            derivative_u8_3tap(&float, &kx, &ky, 1.0, 0.0, BorderMode::Reflect101, 0.0).is_none()
+        );
     }
 }
