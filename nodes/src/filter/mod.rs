@@ -6,21 +6,19 @@ pub mod box_filter;
 pub mod color;
 pub mod composite;
 pub mod convert;
-pub mod frequency;
 pub mod convolve;
 pub mod derivatives;
-pub mod gaussian;
-pub mod grayscale;
-pub mod kuwahara;
-pub mod median;
 pub mod distance;
 pub mod flow;
+pub mod frequency;
 pub mod gaussian;
 pub mod grayscale;
 pub mod hit_or_miss;
+pub mod kuwahara;
+pub mod median;
 pub mod morphology;
-pub mod rank;
 pub mod noise;
+pub mod rank;
 pub mod sobel;
 
 #[cfg(test)]
