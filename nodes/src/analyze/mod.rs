@@ -1,3 +1,4 @@
 //! Measurements on values.
 
+pub mod histogram;
 pub mod stats;
