@@ -104,7 +104,9 @@ Example:
             normalize,
         } = params;
         if !(1..=MAX_BINS).contains(&bins) {
-            return Err(format!("`bins` must be between 1 and {MAX_BINS}, got {bins}"));
+            return Err(format!(
+                "`bins` must be between 1 and {MAX_BINS}, got {bins}"
+            ));
         }
         if let Some([lo, hi]) = range
             && !(lo.is_finite() && hi.is_finite() && lo < hi)
@@ -135,7 +137,8 @@ impl Operator for Histogram {
                 *v /= pixels;
             }
         }
-        let matrix = Matrix::new(channels, self.bins, data).map_err(|e| OpError::failed(e.to_string()))?;
+        let matrix =
+            Matrix::new(channels, self.bins, data).map_err(|e| OpError::failed(e.to_string()))?;
         Ok(Outputs::new()
             .with("histogram", Value::Matrix(std::sync::Arc::new(matrix)))
             .with("plot", Value::image(plot)))
@@ -326,4 +329,105 @@ pub fn plot_histograms(counts: &[Vec<u64>], channels: usize) -> Result<Image, Va
         }
     }
     Image::from_u8(PLOT_WIDTH, PLOT_HEIGHT, Channels::Rgb, data)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    #[test]
+    fn bins_by_hand() {
+        let image = Image::from_u8(6, 1, Channels::Gray, vec![0, 63, 64, 128, 255, 255]).unwrap();
+        assert_eq!(channel_histograms(&image, 4, None), vec![vec![2, 1, 1, 2]]);
+        // [20, 200): 10 bins of 18 levels; 0, 255 and 200 itself are outside.
+        let image = Image::from_u8(5, 1, Channels::Gray, vec![0, 20, 37, 38, 200]).unwrap();
+        let counts = channel_histograms(&image, 10, Some([20.0, 200.0]));
+        assert_eq!(counts[0][0], 2);
+        assert_eq!(counts[0][1], 1);
+        assert_eq!(counts[0].iter().sum::<u64>(), 3);
+        let full = histogram_u8(&[5, 5, 7]);
+        assert_eq!((full[5], full[7], full.iter().sum::<u64>()), (2, 1, 3));
+    }
+
+    #[test]
+    fn channels_u16_and_f32() {
+        let rgb = Image::from_u8(2, 1, Channels::Rgb, vec![0, 128, 255, 0, 0, 0]).unwrap();
+        assert_eq!(
+            channel_histograms(&rgb, 2, None),
+            vec![vec![2, 0], vec![1, 1], vec![1, 1]]
+        );
+        let wide = Image::from_u16(3, 1, Channels::Gray, vec![0, 32767, 65535]).unwrap();
+        assert_eq!(channel_histograms(&wide, 2, None), vec![vec![2, 1]]);
+        // f32 default range: [min, max], the maximum in the last bin; NaN and ∞ not counted.
+        let data = vec![-1.0, 0.0, 0.999, 1.0, f32::NAN, f32::INFINITY];
+        let float = Image::from_f32(6, 1, Channels::Gray, data).unwrap();
+        assert_eq!(channel_histograms(&float, 2, None), vec![vec![1, 3]]);
+        assert_eq!(
+            channel_histograms(&float, 2, Some([0.0, 1.0])),
+            vec![vec![1, 1]]
+        );
+        let flat = Image::from_f32(2, 1, Channels::Gray, vec![3.0, 3.0]).unwrap();
+        assert_eq!(channel_histograms(&flat, 3, None), vec![vec![2, 0, 0]]);
+        let empty = Image::from_f32(0, 0, Channels::Gray, vec![]).unwrap();
+        assert_eq!(channel_histograms(&empty, 3, None), vec![vec![0, 0, 0]]);
+    }
+
+    #[test]
+    fn plot_draws_one_colour_per_channel() {
+        let rgb = Image::from_u8(1, 1, Channels::Rgb, vec![0, 255, 0]).unwrap();
+        let counts = channel_histograms(&rgb, 256, None);
+        let plot = plot_histograms(&counts, 3).unwrap();
+        assert_eq!(
+            (plot.width(), plot.height(), plot.channels()),
+            (512, 256, Channels::Rgb)
+        );
+        let px = |x: usize, y: usize| {
+            let i = (y * 512 + x) * 3;
+            plot.as_u8().unwrap()[i..i + 3].to_vec()
+        };
+        // Bin 0 holds red and blue (full height), bin 255 green; columns 0 and 511.
+        assert_eq!(px(0, 0), [255, 0, 255]);
+        assert_eq!(px(511, 0), [0, 255, 0]);
+        assert_eq!(px(256, 255), [0, 0, 0]);
+        let gray = plot_histograms(&[vec![1, 0]], 1).unwrap();
+        assert_eq!(&gray.as_u8().unwrap()[..3], &[255, 255, 255]);
+    }
+
+    #[test]
+    fn new_checks_params() {
+        let p = |bins: u32, range: Option<[f64; 2]>| {
+            Histogram::new(HistogramParams {
+                bins,
+                range,
+                normalize: false,
+            })
+        };
+        assert!(p(256, None).is_ok());
+        assert!(p(0, None).is_err());
+        assert!(p(70_000, None).is_err());
+        assert!(p(16, Some([1.0, 1.0])).is_err());
+        assert!(p(16, Some([0.0, f64::NAN])).is_err());
+        assert!(p(16, Some([0.0, 1.0])).is_ok());
+    }
+
+    proptest! {
+        #[test]
+        fn counts_sum_to_the_sample_count(
+            data in proptest::collection::vec(any::<u8>(), 0..600),
+            bins in 1usize..300,
+        ) {
+            let n = data.len() / 3;
+            let image = Image::from_u8(n, 1, Channels::Rgb, data[..n * 3].to_vec()).unwrap();
+            let counts = channel_histograms(&image, bins, None);
+            prop_assert_eq!(counts.len(), 3);
+            for (ch, row) in counts.iter().enumerate() {
+                prop_assert_eq!(row.iter().sum::<u64>(), n as u64);
+                // Each sample lands in bin ⌊v·bins/256⌋.
+                for px in data[..n * 3].chunks_exact(3) {
+                    prop_assert!(row[px[ch] as usize * bins / 256] > 0);
+                }
+            }
+        }
+    }
 }

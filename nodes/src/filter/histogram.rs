@@ -146,7 +146,9 @@ pub fn equalize(image: &Image, mode: ColorMode) -> Result<Image, String> {
         }
         PixelData::U16(src) => {
             if colour && mode == ColorMode::Luma {
-                return Err("luma equalization takes u8 colour images; use mode per_channel for u16".into());
+                return Err(
+                    "luma equalization takes u8 colour images; use mode per_channel for u16".into(),
+                );
             }
             PixelData::U16(per_channel(src, c, colour, |plane| {
                 let table = equalize_table(&histogram_u16(plane), plane.len() as u64);
@@ -217,8 +219,8 @@ fn shift_to_luma(src: &[u8], c: usize, new_luma: &[u8]) -> Vec<u8> {
         .zip(new_luma.par_chunks(4096))
         .for_each(|(d, y)| {
             for (p, &ny) in d.chunks_exact_mut(c).zip(y) {
-                let exact = (0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]))
-                    + 0.114 * f32::from(p[2]);
+                let exact =
+                    (0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1])) + 0.114 * f32::from(p[2]);
                 let delta = f32::from(ny) - exact;
                 for v in &mut p[..3] {
                     *v = (f32::from(*v) + delta).round_ties_even().clamp(0.0, 255.0) as u8;
@@ -270,9 +272,12 @@ Histogram Equalization", Graphics Gems IV, 1994), with OpenCV's `CLAHE` arithmet
 - Each pixel blends the tables of the four nearest tile centres bilinearly (f32, clamped at
   the image's edges) and rounds half to even.
 
-Gray u8 matches `cv2.createCLAHE(clip_limit, tiles).apply` (256 bins). u16 uses OpenCV's 4096
-bins of `v >> 4` and outputs `table << 4`. Colour u8 images are processed through their luma
-(mode "luma", as filter.equalize) or per channel; f32 is rejected.
+Gray u8 matches `cv2.createCLAHE(clip_limit, tiles).apply` bit for bit (256 bins); u16 uses
+65536 bins, as OpenCV. Colour u8 images are processed through their luma (mode "luma", as
+filter.equalize) or per channel (u16 colour: per channel only); f32 is rejected. One
+difference: OpenCV computes the clip count in a C int, which overflows for huge limits on big
+tiles (e.g. clip_limit 10⁶ on a 1080p image with 1 tile, where OpenCV then clips at 1); here
+it does not overflow.
 
 Reference: OpenCV `cv::createCLAHE`, `cv::CLAHE::apply`.
 
@@ -374,11 +379,11 @@ pub fn clahe(
     Image::new(w, h, image.channels(), data).map_err(|e| e.to_string())
 }
 
-/// Sample types CLAHE handles: `BINS` bins of `v >> SHIFT`.
+/// Sample types CLAHE handles: one bin per level.
 trait ClaheSample: Copy + Default + Send + Sync {
     const BINS: usize;
     fn bin(self) -> usize;
-    /// `round_half_even(x)` saturated, shifted back by `SHIFT`.
+    /// `round_half_even(x)` saturated.
     fn from_f32(x: f32) -> Self;
 }
 
@@ -393,12 +398,12 @@ impl ClaheSample for u8 {
 }
 
 impl ClaheSample for u16 {
-    const BINS: usize = 4096;
+    const BINS: usize = 65536;
     fn bin(self) -> usize {
-        (self >> 4) as usize
+        self as usize
     }
     fn from_f32(x: f32) -> Self {
-        (x.round_ties_even().clamp(0.0, 65535.0) as u16) << 4
+        x.round_ties_even().clamp(0.0, 65535.0) as u16
     }
 }
 
@@ -517,14 +522,284 @@ fn clip_histogram(hist: &mut [u64], clip: u64) {
     for n in hist.iter_mut() {
         *n += batch;
     }
-    if residual > 0 {
-        let step = (bins / residual).max(1) as usize;
-        for n in hist.iter_mut().step_by(step) {
+    if let Some(step) = bins.checked_div(residual) {
+        for n in hist.iter_mut().step_by(step.max(1) as usize) {
             if residual == 0 {
                 break;
             }
             *n += 1;
             residual -= 1;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::filter::test_support::random_u8;
+    use crate::filter::threshold::tests::smooth;
+    use proptest::prelude::*;
+
+    fn gray(w: usize, h: usize, data: Vec<u8>) -> Image {
+        Image::from_u8(w, h, Channels::Gray, data).unwrap()
+    }
+
+    /// cv2.equalizeHist(smooth(12, 10, 8)).
+    const EQUALIZED: [u8; 120] = [
+        19, 30, 43, 47, 26, 69, 159, 114, 94, 159, 201, 231, 13, 9, 58, 64, 30, 41, 159, 131, 195,
+        144, 186, 204, 60, 17, 15, 39, 120, 133, 131, 88, 126, 236, 214, 221, 4, 56, 21, 79, 148,
+        99, 73, 144, 161, 165, 242, 246, 11, 24, 34, 107, 77, 107, 120, 103, 165, 174, 227, 229, 9,
+        73, 114, 99, 56, 186, 174, 214, 191, 240, 249, 253, 56, 36, 103, 148, 126, 144, 214, 216,
+        208, 195, 189, 251, 62, 90, 47, 144, 126, 186, 174, 199, 178, 208, 255, 32, 69, 116, 88,
+        88, 77, 159, 227, 199, 236, 238, 246, 2, 114, 92, 144, 176, 88, 150, 186, 167, 221, 223, 0,
+        56,
+    ];
+
+    /// cv2.createCLAHE(2.0, (4, 3)).apply(smooth(16, 12, 9)).
+    const CLAHE_16X12: [u8; 192] = [
+        112, 128, 80, 175, 80, 68, 175, 211, 88, 207, 175, 132, 239, 183, 112, 143, 96, 48, 143,
+        163, 168, 84, 143, 127, 128, 183, 239, 143, 215, 227, 48, 32, 32, 175, 80, 215, 152, 203,
+        80, 223, 112, 148, 159, 132, 223, 100, 48, 64, 92, 52, 211, 124, 177, 121, 199, 186, 144,
+        103, 187, 209, 175, 73, 64, 80, 80, 80, 64, 207, 167, 106, 239, 199, 223, 149, 215, 239,
+        251, 46, 104, 175, 148, 96, 64, 144, 74, 141, 183, 228, 104, 93, 132, 166, 96, 159, 76,
+        175, 64, 96, 207, 143, 168, 112, 239, 135, 207, 207, 143, 191, 24, 80, 143, 159, 96, 135,
+        147, 151, 181, 135, 179, 106, 209, 132, 219, 46, 82, 36, 215, 175, 144, 191, 175, 72, 156,
+        159, 88, 227, 108, 237, 144, 94, 56, 68, 239, 207, 120, 52, 235, 83, 122, 215, 72, 231,
+        197, 151, 40, 47, 86, 175, 251, 128, 32, 80, 207, 195, 199, 183, 175, 159, 136, 231, 96,
+        68, 80, 96, 207, 223, 96, 143, 255, 155, 88, 136, 207, 243, 191, 219, 32, 68, 128, 159,
+        128, 159,
+    ];
+
+    /// cv2.createCLAHE(3.0, (3, 2)).apply(smooth(17, 13, 10)): both axes need padding.
+    const CLAHE_17X13: [u8; 221] = [
+        12, 85, 36, 121, 141, 156, 134, 131, 159, 67, 99, 146, 142, 219, 11, 36, 49, 97, 24, 61,
+        128, 105, 166, 148, 160, 95, 103, 94, 121, 197, 202, 89, 115, 79, 42, 73, 49, 115, 126,
+        105, 140, 99, 74, 61, 158, 178, 167, 24, 79, 128, 55, 18, 30, 128, 140, 121, 121, 146, 99,
+        169, 152, 126, 164, 173, 63, 110, 140, 85, 46, 105, 86, 182, 151, 111, 175, 149, 69, 134,
+        178, 196, 193, 18, 96, 130, 94, 66, 41, 90, 164, 139, 185, 179, 85, 142, 148, 181, 203, 42,
+        14, 55, 143, 165, 44, 47, 126, 166, 153, 97, 124, 115, 111, 119, 211, 214, 46, 42, 91, 131,
+        145, 76, 48, 70, 197, 157, 155, 122, 156, 163, 203, 152, 48, 41, 91, 71, 110, 82, 48, 78,
+        109, 199, 166, 109, 137, 191, 191, 121, 210, 39, 82, 28, 39, 152, 112, 120, 99, 184, 143,
+        193, 127, 185, 165, 160, 177, 18, 13, 78, 67, 133, 136, 140, 70, 127, 59, 115, 119, 189,
+        160, 189, 173, 211, 35, 24, 82, 70, 101, 170, 88, 36, 152, 128, 109, 90, 105, 146, 192,
+        203, 206, 37, 55, 52, 109, 115, 146, 152, 73, 146, 97, 194, 160, 132, 140, 176, 177, 12,
+        77, 39, 70, 99, 104, 140, 164,
+    ];
+
+    #[test]
+    fn equalize_by_hand_and_opencv() {
+        // Histogram [2, 1, 1]: scale 255 / (4 − 2) = 127.5, lut = [0, 128 (127.5 to even), 255].
+        let out = equalize(&gray(4, 1, vec![0, 0, 1, 2]), ColorMode::Luma).unwrap();
+        assert_eq!(out.as_u8().unwrap(), &[0, 0, 128, 255]);
+        let out = equalize(&smooth(12, 10, 8), ColorMode::Luma).unwrap();
+        assert_eq!(out.as_u8().unwrap(), &EQUALIZED[..]);
+        // A constant image keeps its value (as OpenCV).
+        let flat = gray(3, 2, vec![9; 6]);
+        assert_eq!(equalize(&flat, ColorMode::Luma).unwrap(), flat);
+        let wide = Image::from_u16(4, 1, Channels::Gray, vec![0, 0, 1000, 65535]).unwrap();
+        let out = equalize(&wide, ColorMode::Luma).unwrap();
+        assert_eq!(out.as_u16().unwrap(), &[0, 0, 32768, 65535]);
+    }
+
+    #[test]
+    fn equalized_histogram_is_flat() {
+        let image = smooth(200, 150, 3);
+        let src = image.as_u8().unwrap();
+        let out = equalize(&image, ColorMode::Luma).unwrap();
+        let dst = out.as_u8().unwrap();
+        let n = src.len() as f64;
+        let hist = histogram_u8(src);
+        let first = hist.iter().position(|&h| h > 0).unwrap();
+        let lut: Vec<u8> = (0..256)
+            .map(|v| dst[src.iter().position(|&s| s as usize == v).unwrap_or(0)])
+            .collect();
+        let mut cdf = 0u64;
+        for v in 0..256 {
+            cdf += hist[v];
+            if hist[v] == 0 {
+                continue;
+            }
+            // The output cdf at lut[v] is the input cdf at v: a uniform distribution.
+            let expected = (cdf - hist[first]) as f64 / (n - hist[first] as f64);
+            assert!((f64::from(lut[v]) / 255.0 - expected).abs() <= 0.5 / 255.0 + 1e-6);
+        }
+        // Monotone: the order of samples is kept.
+        for (a, b) in src.iter().zip(dst).zip(src.iter().zip(dst).skip(1)) {
+            if a.0 < b.0 {
+                assert!(a.1 <= b.1);
+            }
+        }
+    }
+
+    #[test]
+    fn colour_equalization() {
+        // Gray pixels stay gray and follow the gray equalization in luma mode.
+        let plane = random_u8(40, 30, Channels::Gray, 2);
+        let rgb: Vec<u8> = plane
+            .as_u8()
+            .unwrap()
+            .iter()
+            .flat_map(|&v| [v, v, v])
+            .collect();
+        let rgb = Image::from_u8(40, 30, Channels::Rgb, rgb).unwrap();
+        let expected = equalize(&plane, ColorMode::Luma).unwrap();
+        let expected = expected.as_u8().unwrap();
+        for mode in [ColorMode::Luma, ColorMode::PerChannel] {
+            let out = equalize(&rgb, mode).unwrap();
+            for (p, &e) in out.as_u8().unwrap().chunks_exact(3).zip(expected) {
+                assert_eq!(p, [e, e, e], "{mode:?}");
+            }
+        }
+        // Per channel: each channel is its own equalization; alpha is copied.
+        let rgba = random_u8(16, 9, Channels::Rgba, 5);
+        let out = equalize(&rgba, ColorMode::PerChannel).unwrap();
+        let src = rgba.as_u8().unwrap();
+        for ch in 0..4 {
+            let plane: Vec<u8> = src.iter().skip(ch).step_by(4).copied().collect();
+            let got: Vec<u8> = out
+                .as_u8()
+                .unwrap()
+                .iter()
+                .skip(ch)
+                .step_by(4)
+                .copied()
+                .collect();
+            let want = if ch == 3 {
+                plane.clone()
+            } else {
+                equalize(&gray(16, 9, plane), ColorMode::Luma)
+                    .unwrap()
+                    .as_u8()
+                    .unwrap()
+                    .to_vec()
+            };
+            assert_eq!(got, want, "channel {ch}");
+        }
+        let f = Image::from_f32(1, 1, Channels::Gray, vec![0.5]).unwrap();
+        assert!(equalize(&f, ColorMode::Luma).is_err());
+        assert!(clahe(&f, 2.0, [2, 2], ColorMode::Luma).is_err());
+    }
+
+    #[test]
+    fn clahe_matches_opencv() {
+        let out = clahe(&smooth(16, 12, 9), 2.0, [4, 3], ColorMode::Luma).unwrap();
+        assert_eq!(out.as_u8().unwrap(), &CLAHE_16X12[..]);
+        let out = clahe(&smooth(17, 13, 10), 3.0, [3, 2], ColorMode::Luma).unwrap();
+        assert_eq!(out.as_u8().unwrap(), &CLAHE_17X13[..]);
+    }
+
+    #[test]
+    fn clahe_with_one_tile_and_no_limit_is_equalization() {
+        let image = random_u8(256, 256, Channels::Gray, 8);
+        let a = clahe(&image, 1e9, [1, 1], ColorMode::Luma).unwrap();
+        let b = equalize(&image, ColorMode::Luma).unwrap();
+        let pairs: Vec<(u8, u8)> = image
+            .as_u8()
+            .unwrap()
+            .iter()
+            .copied()
+            .zip(a.as_u8().unwrap().iter().copied())
+            .collect();
+        for (x, y) in a.as_u8().unwrap().iter().zip(b.as_u8().unwrap()) {
+            assert!(x.abs_diff(*y) <= 1, "{x} vs {y}");
+        }
+        // One table everywhere: the output is a monotone function of the input.
+        let mut sorted = pairs.clone();
+        sorted.sort();
+        for w in sorted.windows(2) {
+            assert!(w[0].1 <= w[1].1);
+        }
+        // Clip 0 means no limit.
+        let c = clahe(&image, 0.0, [1, 1], ColorMode::Luma).unwrap();
+        assert_eq!(a, c);
+    }
+
+    #[test]
+    fn clahe_extremes() {
+        for (w, h) in [(0, 0), (3, 0), (1, 1), (2, 3), (5, 1)] {
+            let image = Image::from_u8(w, h, Channels::Gray, vec![100; w * h]).unwrap();
+            let out = clahe(&image, 40.0, [8, 8], ColorMode::Luma).unwrap();
+            assert_eq!((out.width(), out.height()), (w, h));
+            // Every tile sees the same constant: one output value.
+            if let Some(&first) = out.as_u8().unwrap().first() {
+                assert!(out.as_u8().unwrap().iter().all(|&v| v == first));
+            }
+        }
+        let wide =
+            Image::from_u16(20, 10, Channels::Gray, (0..200).map(|v| v * 300).collect()).unwrap();
+        let out = clahe(&wide, 2.0, [2, 2], ColorMode::Luma).unwrap();
+        // cv2.createCLAHE(2, (2, 2)).apply(arange(200).reshape(10, 20) * 300) as u16.
+        let expected: [u16; 200] = [
+            1311, 2621, 3932, 5243, 6554, 7864, 8258, 8389, 8257, 7864, 7209, 6815, 6684, 6816,
+            7209, 7864, 9175, 10486, 11796, 13107, 14418, 15728, 17039, 18350, 19660, 20971, 21364,
+            21496, 21364, 20971, 20316, 19922, 19792, 19923, 20315, 20971, 22282, 23593, 24903,
+            26214, 27525, 28835, 30146, 31457, 32767, 34078, 34472, 34603, 34471, 34078, 33423,
+            33029, 32898, 33030, 33422, 34078, 35389, 36700, 38010, 39321, 36569, 37748, 38928,
+            40108, 41287, 42466, 42821, 42939, 42820, 42467, 41877, 41523, 41405, 41523, 41876,
+            42466, 43646, 44826, 46005, 47185, 37617, 38534, 39452, 40370, 41287, 42204, 42480,
+            42572, 42480, 42205, 41746, 41470, 41379, 41471, 41745, 42204, 43122, 44040, 44957,
+            45874, 33423, 34078, 34734, 35389, 36044, 36700, 36896, 36962, 36896, 36700, 36372,
+            36175, 36110, 36175, 36372, 36700, 37355, 38010, 38666, 39321, 29753, 30670, 31588,
+            32505, 33422, 34340, 34616, 34708, 34615, 34340, 33882, 33606, 33515, 33606, 33881,
+            34340, 35258, 36176, 37093, 38010, 31326, 32505, 33685, 34865, 36044, 37224, 37578,
+            37696, 37578, 37224, 36634, 36280, 36162, 36280, 36634, 37224, 38404, 39584, 40762,
+            41942, 40632, 41942, 43253, 44564, 45874, 47185, 47578, 47710, 47578, 47185, 46530,
+            46136, 46006, 46137, 46529, 47185, 48496, 49807, 51117, 52428, 53739, 55049, 56360,
+            57671, 58981, 60292, 60686, 60817, 60685, 60292, 59637, 59243, 59112, 59244, 59636,
+            60292, 61603, 62914, 64224, 65535,
+        ];
+        assert_eq!(out.as_u16().unwrap(), &expected[..]);
+    }
+
+    #[test]
+    fn identical_for_any_thread_count() {
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
+        let image = random_u8(333, 250, Channels::Rgb, 4);
+        let run = || {
+            (
+                clahe(&image, 2.0, [8, 8], ColorMode::Luma).unwrap(),
+                clahe(&image, 3.0, [5, 3], ColorMode::PerChannel).unwrap(),
+                equalize(&image, ColorMode::Luma).unwrap(),
+            )
+        };
+        assert_eq!(pool(1).install(run), pool(3).install(run));
+    }
+
+    #[test]
+    fn new_checks_params() {
+        let c = |clip_limit: f64, tiles: [u32; 2]| {
+            Clahe::new(ClaheParams {
+                clip_limit,
+                tiles,
+                ..ClaheParams::default()
+            })
+        };
+        assert!(c(40.0, [8, 8]).is_ok());
+        assert!(c(-1.0, [8, 8]).is_err());
+        assert!(c(f64::NAN, [8, 8]).is_err());
+        assert!(c(2.0, [0, 8]).is_err());
+        assert!(c(2.0, [8, 300]).is_err());
+    }
+
+    proptest! {
+        #[test]
+        fn equalize_is_monotone(data in proptest::collection::vec(any::<u8>(), 1..300)) {
+            let n = data.len();
+            let out = equalize(&gray(n, 1, data.clone()), ColorMode::Luma).unwrap();
+            let out = out.as_u8().unwrap();
+            for i in 0..n {
+                for j in 0..n {
+                    if data[i] < data[j] {
+                        prop_assert!(out[i] <= out[j]);
+                    }
+                }
+            }
+            prop_assert_eq!(*out.iter().max().unwrap(), if data.iter().all(|&v| v == data[0]) { data[0] } else { 255 });
         }
     }
 }

@@ -149,7 +149,8 @@ impl HsvTables {
         let mut hdiv = [0i32; 256];
         for i in 1..256 {
             sdiv[i] = ((255.0 * f64::from(1 << HSV_SHIFT)) / i as f64).round_ties_even() as i32;
-            hdiv[i] = ((180.0 * f64::from(1 << HSV_SHIFT)) / (6.0 * i as f64)).round_ties_even() as i32;
+            hdiv[i] =
+                ((180.0 * f64::from(1 << HSV_SHIFT)) / (6.0 * i as f64)).round_ties_even() as i32;
         }
         HsvTables { sdiv, hdiv }
     }
@@ -200,13 +201,16 @@ fn hsv_f32(r: f32, g: f32, b: f32) -> [f32; 3] {
 /// Inclusive test with an optionally wrapped first (hue) interval.
 #[inline]
 fn inside<T: PartialOrd + Copy>(v: &[T], bounds: &[(T, T)], wrap_first: bool) -> bool {
-    v.iter().zip(bounds).enumerate().all(|(k, (&x, &(lo, hi)))| {
-        if k == 0 && wrap_first {
-            x >= lo || x <= hi
-        } else {
-            x >= lo && x <= hi
-        }
-    })
+    v.iter()
+        .zip(bounds)
+        .enumerate()
+        .all(|(k, (&x, &(lo, hi)))| {
+            if k == 0 && wrap_first {
+                x >= lo || x <= hi
+            } else {
+                x >= lo && x <= hi
+            }
+        })
 }
 
 /// Integer bound: rounded to nearest and clamped to `[-1, max + 1]` so an out-of-range bound
@@ -396,7 +400,9 @@ Example:
             return Err(format!("`key` components must be in 0..1, got {k}"));
         }
         if !(tolerance.is_finite() && tolerance >= 0.0) {
-            return Err(format!("`tolerance` must be finite and ≥ 0, got {tolerance}"));
+            return Err(format!(
+                "`tolerance` must be finite and ≥ 0, got {tolerance}"
+            ));
         }
         if !(softness.is_finite() && softness >= 0.0) {
             return Err(format!("`softness` must be finite and ≥ 0, got {softness}"));
@@ -519,7 +525,11 @@ fn key_samples<T: KeySample>(
         .zip(rgba.par_chunks_mut(CHUNK_PIXELS * 4))
         .zip(src.par_chunks(CHUNK_PIXELS * c))
         .for_each(|((m, o), s)| {
-            for ((m, o), p) in m.iter_mut().zip(o.chunks_exact_mut(4)).zip(s.chunks_exact(c)) {
+            for ((m, o), p) in m
+                .iter_mut()
+                .zip(o.chunks_exact_mut(4))
+                .zip(s.chunks_exact(c))
+            {
                 let alpha = alpha_of(p[0].to_unit(), p[1].to_unit(), p[2].to_unit());
                 *m = T::from_unit(alpha);
                 o[..3].copy_from_slice(&p[..3]);
@@ -528,4 +538,219 @@ fn key_samples<T: KeySample>(
             }
         });
     (mask, rgba)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::filter::test_support::random_u8;
+    use proptest::prelude::*;
+
+    fn rgb(pixels: &[[u8; 3]]) -> Image {
+        let data = pixels.iter().flatten().copied().collect();
+        Image::from_u8(pixels.len(), 1, Channels::Rgb, data).unwrap()
+    }
+
+    #[test]
+    fn hsv_matches_opencv() {
+        // cv2.cvtColor(px, COLOR_RGB2HSV).
+        let tables = HsvTables::new();
+        let cases = [
+            ([255, 0, 0], [0, 255, 255]),
+            ([0, 255, 0], [60, 255, 255]),
+            ([0, 0, 255], [120, 255, 255]),
+            ([10, 200, 130], [79, 242, 200]),
+            ([128, 128, 128], [0, 0, 128]),
+            ([255, 0, 1], [0, 255, 255]),
+            ([1, 2, 3], [105, 170, 3]),
+        ];
+        for (p, expected) in cases {
+            assert_eq!(tables.hsv(p[0], p[1], p[2]), expected, "{p:?}");
+        }
+        let [h, s, v] = hsv_f32(0.0, 1.0, 0.0);
+        assert!((h - 120.0).abs() < 1e-3 && (s - 1.0).abs() < 1e-6 && v == 1.0);
+    }
+
+    #[test]
+    fn rgb_ranges_by_hand() {
+        let image = rgb(&[[10, 20, 30], [10, 21, 30], [9, 20, 30], [255, 255, 255]]);
+        let mask = in_range(
+            &image,
+            &[10.0, 0.0, 0.0],
+            &[10.0, 20.0, 255.0],
+            RangeSpace::Rgb,
+        )
+        .unwrap();
+        assert_eq!(mask.as_u8().unwrap(), &[255, 0, 0, 0]);
+        // One bound for all channels; bounds round to nearest (19.6 → 20).
+        let mask = in_range(&image, &[9.6], &[30.4], RangeSpace::Rgb).unwrap();
+        assert_eq!(mask.as_u8().unwrap(), &[255, 255, 0, 0]);
+        let gray = Image::from_u16(3, 1, Channels::Gray, vec![0, 500, 70]).unwrap();
+        let mask = in_range(&gray, &[50.0], &[500.0], RangeSpace::Rgb).unwrap();
+        assert_eq!(mask.as_u8().unwrap(), &[0, 255, 255]);
+        let f = Image::from_f32(3, 1, Channels::Gray, vec![0.1, 0.5, f32::NAN]).unwrap();
+        let mask = in_range(&f, &[0.2], &[1.0], RangeSpace::Rgb).unwrap();
+        assert_eq!(mask.as_u8().unwrap(), &[0, 255, 0]);
+    }
+
+    #[test]
+    fn hsv_ranges_and_wrap() {
+        // Red (H 0), a red-magenta (H ≈ 175), green (H 60).
+        let image = rgb(&[[255, 0, 0], [255, 0, 40], [0, 255, 0]]);
+        let mask = in_range(
+            &image,
+            &[170.0, 50.0, 50.0],
+            &[10.0, 255.0, 255.0],
+            RangeSpace::Hsv,
+        )
+        .unwrap();
+        assert_eq!(mask.as_u8().unwrap(), &[255, 255, 0]);
+        let mask = in_range(
+            &image,
+            &[35.0, 50.0, 50.0],
+            &[85.0, 255.0, 255.0],
+            RangeSpace::Hsv,
+        )
+        .unwrap();
+        assert_eq!(mask.as_u8().unwrap(), &[0, 0, 255]);
+        // Gray and u16 inputs are rejected in hsv; wrong bound counts too.
+        let gray = Image::from_u8(1, 1, Channels::Gray, vec![1]).unwrap();
+        assert!(in_range(&gray, &[0.0], &[1.0], RangeSpace::Hsv).is_err());
+        assert!(in_range(&image, &[0.0, 0.0], &[1.0, 1.0], RangeSpace::Rgb).is_err());
+    }
+
+    #[test]
+    fn hsv_wrap_is_the_union_of_two_ranges() {
+        let image = random_u8(64, 40, Channels::Rgba, 3);
+        let wrapped = in_range(
+            &image,
+            &[160.0, 30.0, 20.0],
+            &[20.0, 255.0, 255.0],
+            RangeSpace::Hsv,
+        )
+        .unwrap();
+        let high = in_range(
+            &image,
+            &[160.0, 30.0, 20.0],
+            &[255.0, 255.0, 255.0],
+            RangeSpace::Hsv,
+        )
+        .unwrap();
+        let low = in_range(
+            &image,
+            &[0.0, 30.0, 20.0],
+            &[20.0, 255.0, 255.0],
+            RangeSpace::Hsv,
+        )
+        .unwrap();
+        for ((&w, &h), &l) in wrapped
+            .as_u8()
+            .unwrap()
+            .iter()
+            .zip(high.as_u8().unwrap())
+            .zip(low.as_u8().unwrap())
+        {
+            assert_eq!(w, h | l);
+        }
+    }
+
+    #[test]
+    fn chroma_key_by_hand() {
+        let image = rgb(&[[0, 204, 0], [0, 102, 0], [255, 0, 255], [40, 244, 40]]);
+        let (mask, keyed) = chroma_key(&image, [0.0, 0.8, 0.0], 0.1, 0.0).unwrap();
+        // Pure key: 0. Magenta: opposite chroma, kept. The key plus grey (40 added to every
+        // channel) has exactly the key's chroma: keyed out.
+        let m = mask.as_u8().unwrap();
+        assert_eq!(m[0], 0);
+        assert_eq!(m[2], 255);
+        assert_eq!(m[3], 0);
+        // Half-bright green is far in chroma (its chroma is halved): kept with a hard matte.
+        assert_eq!(m[1], 255);
+        assert_eq!(keyed.channels(), Channels::Rgba);
+        let k = keyed.as_u8().unwrap();
+        assert_eq!(&k[8..12], &[255, 0, 255, 255]);
+        assert_eq!(k[3], 0);
+    }
+
+    #[test]
+    fn chroma_key_soft_edge_and_formats() {
+        // Distances 0, tolerance + softness / 2 and beyond along the Cb axis: blue changes Cb
+        // by 0.5 per unit. The key is black (chroma 0).
+        let image = Image::from_f32(
+            3,
+            1,
+            Channels::Rgb,
+            vec![0.0, 0.0, 0.0, 0.0, 0.0, 0.3, 0.0, 0.0, 1.0],
+        )
+        .unwrap();
+        let (mask, _) = chroma_key(&image, [0.0, 0.0, 0.0], 0.1, 0.1).unwrap();
+        let m = mask.as_f32().unwrap();
+        // Blue 0.3: Cb 0.15, Cr −0.0244; d = 0.1520 → alpha (0.152 − 0.1)/0.1 = 0.52.
+        let d = (0.15f32 * 0.15 + 0.024_393_6 * 0.024_393_6).sqrt();
+        assert_eq!(m[0], 0.0);
+        assert!((m[1] - (d - 0.1) / 0.1).abs() < 1e-5, "{}", m[1]);
+        assert_eq!(m[2], 1.0);
+        // RGBA: the matte multiplies the existing alpha; u16 works.
+        let rgba = Image::from_u16(1, 1, Channels::Rgba, vec![65535, 0, 65535, 32768]).unwrap();
+        let (mask, keyed) = chroma_key(&rgba, [0.0, 1.0, 0.0], 0.1, 0.1).unwrap();
+        assert_eq!(mask.as_u16().unwrap(), &[65535]);
+        assert_eq!(keyed.as_u16().unwrap(), &[65535, 0, 65535, 32768]);
+        let gray = Image::from_u8(1, 1, Channels::Gray, vec![1]).unwrap();
+        assert!(chroma_key(&gray, [0.0, 1.0, 0.0], 0.1, 0.1).is_err());
+        let empty = Image::from_u8(0, 0, Channels::Rgb, vec![]).unwrap();
+        let (mask, keyed) = chroma_key(&empty, [0.0, 1.0, 0.0], 0.1, 0.1).unwrap();
+        assert!(mask.is_empty() && keyed.is_empty());
+    }
+
+    #[test]
+    fn new_checks_params() {
+        let r = |lower: Vec<f64>, upper: Vec<f64>| {
+            InRange::new(InRangeParams {
+                lower,
+                upper,
+                space: RangeSpace::Rgb,
+            })
+        };
+        assert!(r(vec![0.0], vec![1.0]).is_ok());
+        assert!(r(vec![], vec![]).is_err());
+        assert!(r(vec![0.0; 5], vec![1.0; 5]).is_err());
+        assert!(r(vec![0.0, 1.0], vec![1.0]).is_err());
+        assert!(r(vec![f64::NAN], vec![1.0]).is_err());
+        let k = |key: [f64; 3], tolerance: f64| {
+            ChromaKey::new(ChromaKeyParams {
+                key,
+                tolerance,
+                softness: 0.1,
+            })
+        };
+        assert!(k([0.0, 1.0, 0.0], 0.1).is_ok());
+        assert!(k([0.0, 2.0, 0.0], 0.1).is_err());
+        assert!(k([0.0, 1.0, 0.0], f64::NAN).is_err());
+        assert!(k([0.0, 1.0, 0.0], -0.1).is_err());
+    }
+
+    proptest! {
+        #[test]
+        fn mask_is_binary_and_matches_definition(
+            data in proptest::collection::vec(any::<u8>(), 3..90),
+            lo in 0u8..=255,
+            hi in 0u8..=255,
+        ) {
+            let n = data.len() / 3;
+            let image = Image::from_u8(n, 1, Channels::Rgb, data[..n * 3].to_vec()).unwrap();
+            let mask = in_range(&image, &[f64::from(lo)], &[f64::from(hi)], RangeSpace::Rgb).unwrap();
+            for (m, p) in mask.as_u8().unwrap().iter().zip(data.chunks_exact(3)) {
+                let inside = p.iter().all(|&v| v >= lo && v <= hi);
+                prop_assert_eq!(*m, if inside { 255 } else { 0 });
+            }
+        }
+
+        #[test]
+        fn matte_is_monotone_in_tolerance(r in 0u8..=255, g in 0u8..=255, b in 0u8..=255, t in 0.0f64..0.5) {
+            let image = rgb(&[[r, g, b]]);
+            let (tight, _) = chroma_key(&image, [0.1, 0.9, 0.2], t, 0.05).unwrap();
+            let (loose, _) = chroma_key(&image, [0.1, 0.9, 0.2], t + 0.05, 0.05).unwrap();
+            prop_assert!(loose.as_u8().unwrap()[0] <= tight.as_u8().unwrap()[0]);
+        }
+    }
 }

@@ -666,3 +666,393 @@ fn float_mean(image: &Image, method: AdaptiveMethod, block: usize) -> Vec<f32> {
         AdaptiveMethod::Gaussian => gaussian_mean(&float, block),
     }
 }
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::filter::test_support::{random_u8, randoms};
+    use proptest::prelude::*;
+
+    /// Two clusters, 35 % in 40..100 and 65 % in 150..230 (the same formula as the OpenCV
+    /// reference script, so the pasted thresholds apply).
+    pub(crate) fn bimodal(w: usize, h: usize, seed: u64) -> Image {
+        let r = randoms(seed, 2 * w * h);
+        let data = (0..w * h)
+            .map(|i| {
+                if r[2 * i] < 0.35 {
+                    (40.0 + r[2 * i + 1] * 60.0) as u8
+                } else {
+                    (150.0 + r[2 * i + 1] * 80.0) as u8
+                }
+            })
+            .collect();
+        Image::from_u8(w, h, Channels::Gray, data).unwrap()
+    }
+
+    /// Ramps plus noise: `(7x + 3y) mod 97 + 40·r`.
+    pub(crate) fn smooth(w: usize, h: usize, seed: u64) -> Image {
+        let r = randoms(seed, w * h);
+        let data = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                ((7 * x + 3 * y) % 97) as u8 + (r[i] * 40.0) as u8
+            })
+            .collect();
+        Image::from_u8(w, h, Channels::Gray, data).unwrap()
+    }
+
+    fn gray(data: Vec<u8>) -> Image {
+        let n = data.len();
+        Image::from_u8(n, 1, Channels::Gray, data).unwrap()
+    }
+
+    #[test]
+    fn every_mode_by_hand() {
+        let image = gray(vec![0, 100, 127, 128, 200, 255]);
+        let run = |mode| {
+            let (out, t) = threshold(&image, ThresholdMethod::Fixed, mode, 127.9, 250.0).unwrap();
+            assert_eq!(t, 127.0);
+            out.as_u8().unwrap().to_vec()
+        };
+        assert_eq!(run(ThresholdMode::Binary), [0, 0, 0, 250, 250, 250]);
+        assert_eq!(run(ThresholdMode::BinaryInv), [250, 250, 250, 0, 0, 0]);
+        assert_eq!(run(ThresholdMode::Trunc), [0, 100, 127, 127, 127, 127]);
+        assert_eq!(run(ThresholdMode::ToZero), [0, 0, 0, 128, 200, 255]);
+        assert_eq!(run(ThresholdMode::ToZeroInv), [0, 100, 127, 0, 0, 0]);
+    }
+
+    #[test]
+    fn thresholds_outside_the_range() {
+        let image = gray(vec![0, 9, 255]);
+        let run = |mode, t| {
+            let (out, _) = threshold(&image, ThresholdMethod::Fixed, mode, t, 300.0).unwrap();
+            out.as_u8().unwrap().to_vec()
+        };
+        // Checked against cv2.threshold (max_value saturates to 255).
+        assert_eq!(run(ThresholdMode::Binary, -1.0), [255, 255, 255]);
+        assert_eq!(run(ThresholdMode::Binary, 255.0), [0, 0, 0]);
+        assert_eq!(run(ThresholdMode::BinaryInv, 255.0), [255, 255, 255]);
+        assert_eq!(run(ThresholdMode::Trunc, -5.0), [0, 0, 0]);
+        assert_eq!(run(ThresholdMode::Trunc, 400.0), [0, 9, 255]);
+        assert_eq!(run(ThresholdMode::ToZero, -5.0), [0, 9, 255]);
+        assert_eq!(run(ThresholdMode::ToZeroInv, 255.0), [0, 9, 255]);
+        assert_eq!(run(ThresholdMode::ToZeroInv, -0.5), [0, 0, 0]);
+    }
+
+    #[test]
+    fn u16_and_f32() {
+        let image = Image::from_u16(3, 1, Channels::Gray, vec![10, 1000, 60000]).unwrap();
+        let (out, t) = threshold(
+            &image,
+            ThresholdMethod::Fixed,
+            ThresholdMode::Binary,
+            999.5,
+            65535.0,
+        )
+        .unwrap();
+        assert_eq!(t, 999.0);
+        assert_eq!(out.as_u16().unwrap(), &[0, 65535, 65535]);
+        let image = Image::from_f32(4, 1, Channels::Gray, vec![-1.0, 0.25, 0.5, f32::NAN]).unwrap();
+        let (out, t) = threshold(
+            &image,
+            ThresholdMethod::Fixed,
+            ThresholdMode::Binary,
+            0.25,
+            1.0,
+        )
+        .unwrap();
+        assert_eq!(t, 0.25);
+        assert_eq!(out.as_f32().unwrap(), &[0.0, 0.0, 1.0, 0.0]);
+        let (out, _) = threshold(
+            &image,
+            ThresholdMethod::Fixed,
+            ThresholdMode::Trunc,
+            0.25,
+            1.0,
+        )
+        .unwrap();
+        let v = out.as_f32().unwrap();
+        assert_eq!(&v[..3], &[-1.0, 0.25, 0.25]);
+        assert!(v[3].is_nan());
+    }
+
+    #[test]
+    fn colour_is_thresholded_per_channel() {
+        let image = Image::from_u8(2, 1, Channels::Rgb, vec![10, 200, 130, 128, 127, 0]).unwrap();
+        let (out, _) = threshold(
+            &image,
+            ThresholdMethod::Fixed,
+            ThresholdMode::Binary,
+            127.0,
+            255.0,
+        )
+        .unwrap();
+        assert_eq!(out.as_u8().unwrap(), &[0, 255, 255, 255, 0, 0]);
+    }
+
+    #[test]
+    fn otsu_and_triangle_match_opencv() {
+        // cv2.threshold(img, 0, 255, THRESH_OTSU / THRESH_TRIANGLE)[0] on the same images.
+        let cases = [
+            (bimodal(64, 48, 1), 99, 148),
+            (bimodal(31, 17, 2), 99, 211),
+            (bimodal(200, 100, 3), 99, 148),
+            (random_u8(64, 48, Channels::Gray, 4), 128, 107),
+            (smooth(64, 48, 4), 67, 52),
+            (random_u8(33, 21, Channels::Gray, 5), 129, 24),
+            (smooth(33, 21, 5), 64, 64),
+        ];
+        for (i, (image, otsu, triangle)) in cases.iter().enumerate() {
+            let samples = image.as_u8().unwrap();
+            assert_eq!(otsu_threshold_u8(samples), *otsu, "otsu case {i}");
+            assert_eq!(
+                triangle_threshold_u8(samples),
+                *triangle,
+                "triangle case {i}"
+            );
+            let (out, t) = threshold(
+                image,
+                ThresholdMethod::Otsu,
+                ThresholdMode::Binary,
+                0.0,
+                255.0,
+            )
+            .unwrap();
+            assert_eq!(t, f64::from(*otsu));
+            for (&o, &s) in out.as_u8().unwrap().iter().zip(samples) {
+                assert_eq!(o, if s > *otsu { 255 } else { 0 });
+            }
+        }
+    }
+
+    #[test]
+    fn otsu_edge_cases() {
+        assert_eq!(otsu_threshold_u8(&[]), 0);
+        assert_eq!(otsu_threshold_u8(&[77; 50]), 0);
+        // Two levels: the split lies at the lower one.
+        assert_eq!(otsu_threshold_u8(&[10, 10, 200, 200]), 10);
+        let u16s: Vec<u16> = [10u16, 10, 50_000, 50_000, 50_001].to_vec();
+        assert_eq!(otsu_threshold_u16(&u16s), 10);
+        let rgb = Image::from_u8(1, 1, Channels::Rgb, vec![1, 2, 3]).unwrap();
+        let err = threshold(
+            &rgb,
+            ThresholdMethod::Otsu,
+            ThresholdMode::Binary,
+            0.0,
+            255.0,
+        );
+        assert!(err.unwrap_err().contains("gray"));
+        let f = Image::from_f32(1, 1, Channels::Gray, vec![0.5]).unwrap();
+        let err = threshold(
+            &f,
+            ThresholdMethod::Triangle,
+            ThresholdMode::Binary,
+            0.0,
+            1.0,
+        );
+        assert!(err.unwrap_err().contains("f32"));
+    }
+
+    #[test]
+    fn empty_and_single_pixel() {
+        for (w, h) in [(0, 0), (0, 3), (1, 1)] {
+            let image = Image::from_u8(w, h, Channels::Gray, vec![9; w * h]).unwrap();
+            for method in ThresholdMethod::ALL {
+                let (out, _) =
+                    threshold(&image, *method, ThresholdMode::Binary, 5.0, 255.0).unwrap();
+                assert_eq!((out.width(), out.height()), (w, h));
+            }
+            let out = adaptive_threshold(
+                &image,
+                AdaptiveMethod::Gaussian,
+                5,
+                0.0,
+                AdaptiveMode::Binary,
+                255.0,
+            );
+            assert_eq!((out.width(), out.height()), (w, h));
+        }
+    }
+
+    #[test]
+    fn adaptive_matches_opencv() {
+        // cv2.adaptiveThreshold(smooth(12, 10, 7), 255, method, THRESH_BINARY, 5, 2).
+        let image = smooth(12, 10, 7);
+        let expected = [
+            (
+                AdaptiveMethod::Mean,
+                "001100100101111110111000110010101011010011000011111000101011001000111110001100111011001010100110011110001110111011111100",
+            ),
+            (
+                AdaptiveMethod::Gaussian,
+                "001000100101111010111000110010101011010011000011111000101011001010111100111100111011001010100110011110001110111011110100",
+            ),
+        ];
+        for (method, bits) in expected {
+            let out = adaptive_threshold(&image, method, 5, 2.0, AdaptiveMode::Binary, 255.0);
+            let ours: String = out
+                .as_u8()
+                .unwrap()
+                .iter()
+                .map(|&v| if v == 255 { '1' } else { '0' })
+                .collect();
+            assert_eq!(ours, bits, "{method:?}");
+        }
+    }
+
+    #[test]
+    fn adaptive_by_hand() {
+        // A 1-D step: the box mean (3×3, replicate) of a constant region is the value itself,
+        // so with c = 0 nothing passes there; at the step the bright side passes.
+        let row = [10u8, 10, 10, 90, 90, 90];
+        let data: Vec<u8> = row.iter().cycle().take(18).copied().collect();
+        let image = Image::from_u8(6, 3, Channels::Gray, data).unwrap();
+        let out = adaptive_threshold(
+            &image,
+            AdaptiveMethod::Mean,
+            3,
+            0.0,
+            AdaptiveMode::Binary,
+            255.0,
+        );
+        assert_eq!(&out.as_u8().unwrap()[..6], &[0, 0, 0, 255, 0, 0]);
+        // binary_inv with an integer c is the complement.
+        let inv = adaptive_threshold(
+            &image,
+            AdaptiveMethod::Mean,
+            3,
+            0.0,
+            AdaptiveMode::BinaryInv,
+            255.0,
+        );
+        assert_eq!(&inv.as_u8().unwrap()[..6], &[255, 255, 255, 0, 255, 255]);
+        // c = 1: a constant region passes (src − mean = 0 > −1).
+        let out = adaptive_threshold(
+            &image,
+            AdaptiveMethod::Mean,
+            3,
+            1.0,
+            AdaptiveMode::Binary,
+            255.0,
+        );
+        assert_eq!(&out.as_u8().unwrap()[..6], &[255, 255, 0, 255, 255, 255]);
+        // f32 follows the same rule without rounding.
+        let f = Image::from_f32(
+            6,
+            3,
+            Channels::Gray,
+            image
+                .as_u8()
+                .unwrap()
+                .iter()
+                .map(|&v| f32::from(v))
+                .collect(),
+        )
+        .unwrap();
+        let out = adaptive_threshold(&f, AdaptiveMethod::Mean, 3, 1.0, AdaptiveMode::Binary, 1.0);
+        assert_eq!(&out.as_f32().unwrap()[..6], &[1.0, 1.0, 0.0, 1.0, 1.0, 1.0]);
+    }
+
+    #[test]
+    fn identical_for_any_thread_count() {
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
+        let image = random_u8(301, 257, Channels::Gray, 11);
+        let run = || {
+            (
+                threshold(
+                    &image,
+                    ThresholdMethod::Otsu,
+                    ThresholdMode::ToZero,
+                    0.0,
+                    255.0,
+                )
+                .unwrap(),
+                adaptive_threshold(
+                    &image,
+                    AdaptiveMethod::Gaussian,
+                    7,
+                    1.5,
+                    AdaptiveMode::Binary,
+                    255.0,
+                ),
+            )
+        };
+        assert_eq!(pool(1).install(run), pool(3).install(run));
+    }
+
+    #[test]
+    fn new_checks_params() {
+        let t = |thresh: f64, max_value: f64| {
+            Threshold::new(ThresholdParams {
+                thresh,
+                max_value,
+                ..ThresholdParams::default()
+            })
+        };
+        assert!(t(127.0, 255.0).is_ok());
+        assert!(t(f64::NAN, 255.0).is_err());
+        assert!(t(1.0, f64::INFINITY).is_err());
+        let a = |block_size: u32, c: f64| {
+            AdaptiveThreshold::new(AdaptiveParams {
+                block_size,
+                c,
+                ..AdaptiveParams::default()
+            })
+        };
+        assert!(a(11, 2.0).is_ok());
+        assert!(a(4, 2.0).is_err());
+        assert!(a(1, 2.0).is_err());
+        assert!(a(2047, 2.0).is_err());
+        assert!(a(5, f64::NAN).is_err());
+    }
+
+    proptest! {
+        #[test]
+        fn binary_outputs_and_complements(
+            data in proptest::collection::vec(any::<u8>(), 1..200),
+            thresh in -10.0f64..270.0,
+            max in 0u8..=255,
+        ) {
+            let image = gray(data.clone());
+            let max_value = f64::from(max);
+            let run = |mode| threshold(&image, ThresholdMethod::Fixed, mode, thresh, max_value).unwrap().0;
+            let binary = run(ThresholdMode::Binary);
+            let inverse = run(ThresholdMode::BinaryInv);
+            for ((&b, &i), &s) in binary.as_u8().unwrap().iter().zip(inverse.as_u8().unwrap()).zip(&data) {
+                prop_assert!(b == 0 || b == max);
+                prop_assert_eq!(i, max - b);
+                prop_assert_eq!(b == max && max > 0, f64::from(s) > thresh.floor() && max > 0);
+            }
+            // to_zero + to_zero_inv = src; trunc ≤ src.
+            let zero = run(ThresholdMode::ToZero);
+            let zero_inv = run(ThresholdMode::ToZeroInv);
+            let trunc = run(ThresholdMode::Trunc);
+            for (((&z, &zi), &t), &s) in zero.as_u8().unwrap().iter().zip(zero_inv.as_u8().unwrap()).zip(trunc.as_u8().unwrap()).zip(&data) {
+                prop_assert_eq!(u16::from(z) + u16::from(zi), u16::from(s));
+                prop_assert!(t <= s);
+            }
+        }
+
+        #[test]
+        fn otsu_maximizes_between_class_variance(data in proptest::collection::vec(any::<u8>(), 2..300)) {
+            let t = otsu_threshold_u8(&data) as usize;
+            let variance = |t: usize| {
+                let lo: Vec<f64> = data.iter().map(|&v| f64::from(v)).filter(|&v| v <= t as f64).collect();
+                let n = data.len() as f64;
+                let hi: Vec<f64> = data.iter().map(|&v| f64::from(v)).filter(|&v| v > t as f64).collect();
+                if lo.is_empty() || hi.is_empty() { return 0.0; }
+                let (q1, q2) = (lo.len() as f64 / n, hi.len() as f64 / n);
+                let m1 = lo.iter().sum::<f64>() / lo.len() as f64;
+                let m2 = hi.iter().sum::<f64>() / hi.len() as f64;
+                q1 * q2 * (m1 - m2) * (m1 - m2)
+            };
+            let best = (0..256).map(variance).fold(0.0, f64::max);
+            prop_assert!(variance(t) >= best * (1.0 - 1e-9));
+        }
+    }
+}
