@@ -140,7 +140,11 @@ pub fn equalize(image: &Image, mode: ColorMode) -> Result<Image, String> {
             } else {
                 PixelData::U8(per_channel(src, c, colour, |plane| {
                     let table = equalize_table(&histogram_u8(plane), plane.len() as u64);
-                    plane.iter().map(|&v| table[v as usize] as u8).collect()
+                    let mut lut = [0u8; 256];
+                    for (l, &t) in lut.iter_mut().zip(&table) {
+                        *l = t as u8;
+                    }
+                    apply_lut_u8(plane, &lut)
                 }))
             }
         }
@@ -160,6 +164,19 @@ pub fn equalize(image: &Image, mode: ColorMode) -> Result<Image, String> {
         }
     };
     Image::new(image.width(), image.height(), image.channels(), data).map_err(|e| e.to_string())
+}
+
+/// `lut[v]` for every sample, in parallel chunks.
+fn apply_lut_u8(src: &[u8], lut: &[u8; 256]) -> Vec<u8> {
+    let mut dst = vec![0u8; src.len()];
+    dst.par_chunks_mut(1 << 16)
+        .zip(src.par_chunks(1 << 16))
+        .for_each(|(d, s)| {
+            for (d, &v) in d.iter_mut().zip(s) {
+                *d = lut[v as usize];
+            }
+        });
+    dst
 }
 
 /// Applies `f` to every colour channel plane (alpha, the 4th of 4, is copied).

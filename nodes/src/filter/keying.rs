@@ -29,9 +29,9 @@ param_enum! {
 params! {
     /// Parameters of `filter.in_range`.
     pub struct InRangeParams {
-        /// Inclusive lower bounds, one per compared channel (gray 1; rgb 3, or 4 with alpha on
-        /// RGBA; hsv 3 = H, S, V, or 4 with alpha) or a single value for all, in the image's
-        /// units (integer images: rounded to nearest). Default [0].
+        /// Inclusive lower bounds, one per compared channel (gray 1; rgb 3, or 4 to test alpha
+        /// too on RGBA; hsv 3 = H, S, V, or 4 with alpha) or a single value for all channels,
+        /// in the image's units (integer images: rounded to nearest). Default [0].
         lower: Vec<f64> = vec![0.0],
         /// Inclusive upper bounds, same count and units as `lower`. Default [255].
         upper: Vec<f64> = vec![255.0],
@@ -235,7 +235,8 @@ pub fn in_range(
     if hsv && image.channels() == Channels::Gray {
         return Err("hsv needs an RGB or RGBA image, got gray".into());
     }
-    let n = if hsv && lower.len() == 3 { 3 } else { c };
+    // Three bounds on RGBA leave alpha out.
+    let n = if lower.len() == 3 && c == 4 { 3 } else { c };
     let bounds = expand_bounds(lower, upper, n)?;
     let wrap = hsv && bounds[0].0 > bounds[0].1;
     let mut mask = vec![0u8; w * h];
@@ -588,6 +589,20 @@ mod tests {
         let gray = Image::from_u16(3, 1, Channels::Gray, vec![0, 500, 70]).unwrap();
         let mask = in_range(&gray, &[50.0], &[500.0], RangeSpace::Rgb).unwrap();
         assert_eq!(mask.as_u8().unwrap(), &[0, 255, 255]);
+        // RGBA: three bounds ignore alpha, four test it.
+        let rgba = Image::from_u8(2, 1, Channels::Rgba, vec![5, 5, 5, 0, 5, 5, 5, 200]).unwrap();
+        let mask = in_range(&rgba, &[0.0; 3], &[10.0; 3], RangeSpace::Rgb).unwrap();
+        assert_eq!(mask.as_u8().unwrap(), &[255, 255]);
+        let mask = in_range(
+            &rgba,
+            &[0.0; 4],
+            &[10.0, 10.0, 10.0, 255.0],
+            RangeSpace::Rgb,
+        )
+        .unwrap();
+        assert_eq!(mask.as_u8().unwrap(), &[255, 255]);
+        let mask = in_range(&rgba, &[0.0; 4], &[10.0; 4], RangeSpace::Rgb).unwrap();
+        assert_eq!(mask.as_u8().unwrap(), &[255, 0]);
         let f = Image::from_f32(3, 1, Channels::Gray, vec![0.1, 0.5, f32::NAN]).unwrap();
         let mask = in_range(&f, &[0.2], &[1.0], RangeSpace::Rgb).unwrap();
         assert_eq!(mask.as_u8().unwrap(), &[0, 255, 0]);

@@ -482,7 +482,8 @@ u8 follows OpenCV's `adaptiveThreshold` bit for bit: the mean is rounded to u8 f
 test is `src − mean > −⌈c⌉` (binary) or `src − mean ≤ −⌊c⌋` (binary_inv) in integers. The
 Gaussian mean is computed in f32 and rounded; for block_size ≤ 9 its weights are dyadic and the
 result is exact (identical to OpenCV), for larger blocks a mean within f32 rounding of a half
-level can round the other way. u16 and f32 images (an extension; OpenCV takes u8 only) compare
+level can round the other way (measured on a 1080p photo-like image: at most 3 of 2 073 600
+pixels differ for block sizes 11 and 25). u16 and f32 images (an extension; OpenCV takes u8 only) compare
 `src > mean − c` on the f32 mean without rounding.
 
 Reference: OpenCV `cv::adaptiveThreshold`.
