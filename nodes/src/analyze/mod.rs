@@ -1,4 +1,5 @@
 //! Measurements on values.
 
+pub mod histogram;
 pub mod quality;
 pub mod stats;

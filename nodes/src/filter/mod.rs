@@ -13,13 +13,16 @@ pub mod flow;
 pub mod frequency;
 pub mod gaussian;
 pub mod grayscale;
+pub mod histogram;
 pub mod hit_or_miss;
+pub mod keying;
 pub mod kuwahara;
 pub mod median;
 pub mod morphology;
 pub mod noise;
 pub mod rank;
 pub mod sobel;
+pub mod threshold;
 
 #[cfg(test)]
 pub(crate) mod test_support;
