@@ -62,8 +62,6 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::keying::InRange>()?;
     registry.register::<filter::histogram::Equalize>()?;
     registry.register::<filter::histogram::Clahe>()?;
-    registry.register::<detect::canny::Canny>()?;
-    registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::histogram::Histogram>()?;
     registry.register::<io::read_image::ReadImage>()?;
     registry.register::<io::write_image::WriteImage>()?;
