@@ -22,6 +22,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::morphology::Erode>()?;
     registry.register::<filter::morphology::Dilate>()?;
     registry.register::<filter::morphology::Morphology>()?;
+    registry.register::<filter::resize::Resize>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<io::read_image::ReadImage>()?;

@@ -167,8 +167,8 @@ Example:
 impl Operator for Resize {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
         let image = inputs.image("image")?;
-        let resized =
-            resize(image, self.target, self.interpolation).map_err(|e| OpError::input("image", e))?;
+        let resized = resize(image, self.target, self.interpolation)
+            .map_err(|e| OpError::input("image", e))?;
         Ok(Outputs::new().with("image", Value::image(resized)))
     }
 }
@@ -176,7 +176,11 @@ impl Operator for Resize {
 /// Resizes `image` to `target` with `interpolation` (see the module documentation for the
 /// exact sampling rules). An empty image resizes to an empty image; resizing a non-empty image
 /// to a zero size, or an empty one to a non-zero size, is an error.
-pub fn resize(image: &Image, target: Target, interpolation: Interpolation) -> Result<Image, String> {
+pub fn resize(
+    image: &Image,
+    target: Target,
+    interpolation: Interpolation,
+) -> Result<Image, String> {
     let (sw, sh) = (image.width(), image.height());
     // inv_scale = dst / src per axis, as OpenCV keeps it.
     let (dw, dh, inv_x, inv_y) = match target {
@@ -195,10 +199,14 @@ pub fn resize(image: &Image, target: Target, interpolation: Interpolation) -> Re
     }
     if image.is_empty() || dw == 0 || dh == 0 {
         if (dw == 0 || dh == 0) && !image.is_empty() {
-            return Err(format!("{sw}×{sh} image would resize to an empty {dw}×{dh}"));
+            return Err(format!(
+                "{sw}×{sh} image would resize to an empty {dw}×{dh}"
+            ));
         }
         if dw != 0 && dh != 0 {
-            return Err(format!("cannot resize an empty {sw}×{sh} image to {dw}×{dh}"));
+            return Err(format!(
+                "cannot resize an empty {sw}×{sh} image to {dw}×{dh}"
+            ));
         }
         return Image::zeros(dw, dh, image.format()).map_err(|e| e.to_string());
     }
@@ -472,7 +480,13 @@ fn separable(data: &PixelData, g: &Geometry, method: Interpolation) -> PixelData
 /// Drives a separable resize: bands of destination rows, each with a ring of horizontally
 /// resampled source rows (`horizontal`), combined per destination row by `vertical(rows,
 /// weights, fixed weights, out)`.
-fn run_bands<T, W, O, H, V>(src: &[T], g: &Geometry, ty: &Taps, horizontal: H, vertical: V) -> Vec<O>
+fn run_bands<T, W, O, H, V>(
+    src: &[T],
+    g: &Geometry,
+    ty: &Taps,
+    horizontal: H,
+    vertical: V,
+) -> Vec<O>
 where
     T: Sync,
     W: Copy + Default + Send,
@@ -798,5 +812,311 @@ fn area_general(data: &PixelData, g: &Geometry) -> PixelData {
         PixelData::U8(v) => PixelData::U8(run(v, g)),
         PixelData::U16(v) => PixelData::U16(run(v, g)),
         PixelData::F32(v) => PixelData::F32(run(v, g)),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::filter::test_support::{random_u8, randoms};
+    use ocellus_engine::value::Channels;
+    use proptest::prelude::*;
+
+    const METHODS: [Interpolation; 5] = [
+        Interpolation::Nearest,
+        Interpolation::Bilinear,
+        Interpolation::Bicubic,
+        Interpolation::Area,
+        Interpolation::Lanczos,
+    ];
+
+    fn gray(w: usize, h: usize, data: Vec<u8>) -> Image {
+        Image::from_u8(w, h, Channels::Gray, data).unwrap()
+    }
+
+    fn u8s(image: &Image) -> Vec<u8> {
+        image.as_u8().unwrap().to_vec()
+    }
+
+    /// The 7×5 test pattern `(37x + 91y + 13xy) mod 256`, the input of the OpenCV values below.
+    fn pattern() -> Image {
+        let data = (0..5)
+            .flat_map(|y| (0..7).map(move |x| ((x * 37 + y * 91 + x * y * 13) % 256) as u8))
+            .collect();
+        gray(7, 5, data)
+    }
+
+    fn to_f32(image: &Image) -> Image {
+        let data = image
+            .as_u8()
+            .unwrap()
+            .iter()
+            .map(|&v| f32::from(v))
+            .collect();
+        Image::from_f32(image.width(), image.height(), image.channels(), data).unwrap()
+    }
+
+    #[test]
+    fn matches_opencv_on_a_pattern() {
+        // cv2.resize(pattern, (w, h), interpolation=...) with OpenCV 5.0.
+        let cases: [(usize, usize, Interpolation, &[u8]); 5] = [
+            (
+                4,
+                3,
+                Interpolation::Bilinear,
+                &[46, 118, 116, 177, 206, 60, 170, 120, 109, 87, 160, 127],
+            ),
+            (3, 2, Interpolation::Area, &[99, 135, 148, 121, 139, 136]),
+            (
+                11,
+                9,
+                Interpolation::Bilinear,
+                &[
+                    0, 17, 40, 64, 87, 111, 134, 158, 182, 205, 222, 30, 49, 75, 102, 128, 154,
+                    126, 121, 148, 174, 193, 81, 103, 134, 165, 195, 226, 112, 61, 91, 123, 144,
+                    131, 157, 182, 145, 149, 185, 130, 114, 149, 123, 96, 182, 211, 227, 105, 75,
+                    115, 155, 195, 235, 136, 48, 90, 122, 157, 129, 143, 187, 141, 134, 179, 162,
+                    142, 27, 62, 109, 140, 181, 231, 135, 94, 125, 172, 207, 77, 116, 154, 100,
+                    107, 161, 161, 137, 82, 120, 159, 108, 148, 182, 76, 62, 119, 176, 162, 56, 89,
+                    130,
+                ],
+            ),
+            (
+                11,
+                9,
+                Interpolation::Bicubic,
+                &[
+                    0, 4, 31, 51, 75, 98, 136, 174, 191, 218, 234, 20, 37, 70, 102, 142, 159, 122,
+                    106, 138, 178, 204, 72, 93, 132, 170, 226, 237, 104, 24, 76, 124, 155, 149,
+                    185, 207, 148, 149, 189, 125, 102, 151, 113, 67, 176, 227, 234, 96, 49, 115,
+                    153, 208, 248, 140, 30, 81, 122, 158, 125, 146, 191, 133, 130, 204, 181, 139,
+                    7, 44, 102, 141, 210, 242, 129, 62, 115, 182, 229, 62, 115, 155, 93, 102, 166,
+                    175, 129, 68, 114, 176, 109, 174, 198, 58, 19, 106, 209, 183, 41, 65, 129,
+                ],
+            ),
+            (
+                11,
+                9,
+                Interpolation::Area,
+                &[
+                    0, 16, 37, 69, 85, 111, 137, 153, 185, 206, 222, 18, 35, 58, 92, 109, 137, 129,
+                    131, 165, 187, 205, 91, 112, 141, 184, 205, 241, 94, 42, 85, 114, 135, 127,
+                    151, 182, 142, 151, 190, 120, 100, 147, 120, 100, 182, 209, 245, 80, 70, 115,
+                    160, 187, 241, 131, 48, 83, 113, 154, 127, 142, 193, 134, 120, 181, 163, 149,
+                    17, 50, 93, 158, 191, 245, 116, 76, 141, 184, 217, 90, 127, 176, 75, 82, 144,
+                    169, 162, 61, 110, 147, 108, 146, 197, 54, 55, 119, 183, 184, 41, 92, 130,
+                ],
+            ),
+        ];
+        let image = pattern();
+        for (w, h, method, expected) in cases {
+            let ours = u8s(&resize(&image, Target::Size(w, h), method).unwrap());
+            for (i, (&a, &b)) in ours.iter().zip(expected).enumerate() {
+                assert!(a.abs_diff(b) <= 1, "{method:?} {w}×{h} at {i}: {a} vs {b}");
+            }
+            // The f32 path agrees too (once saturated: bicubic overshoots).
+            let float = resize(&to_f32(&image), Target::Size(w, h), method).unwrap();
+            for (&a, &b) in float.as_f32().unwrap().iter().zip(expected) {
+                assert!(
+                    (a.clamp(0.0, 255.0) - f32::from(b)).abs() <= 1.0,
+                    "{method:?} f32 {a} vs {b}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn nearest_hand_cases() {
+        let row = gray(4, 1, vec![10, 20, 30, 40]);
+        let half = resize(&row, Target::Size(2, 1), Interpolation::Nearest).unwrap();
+        assert_eq!(u8s(&half), [10, 30]);
+        let two = gray(2, 1, vec![5, 9]);
+        let up = resize(&two, Target::Size(4, 1), Interpolation::Nearest).unwrap();
+        assert_eq!(u8s(&up), [5, 5, 9, 9]);
+        let near = resize(&pattern(), Target::Size(11, 9), Interpolation::Nearest).unwrap();
+        // OpenCV: first row 0 0 37 37 74 111 111 148 185 185 222.
+        assert_eq!(
+            u8s(&near)[..11],
+            [0, 0, 37, 37, 74, 111, 111, 148, 185, 185, 222]
+        );
+    }
+
+    #[test]
+    fn area_hand_cases() {
+        // 2×2 blocks, rounding half up: (1 + 2 + 3 + 4 + 2) >> 2 = 3; (0 + 0 + 1 + 1 + 2) >> 2 = 1.
+        let image = gray(4, 2, vec![1, 2, 0, 0, 3, 4, 1, 1]);
+        let half = resize(&image, Target::Size(2, 1), Interpolation::Area).unwrap();
+        assert_eq!(u8s(&half), [3, 1]);
+        // 3 → 2: the first output covers pixel 0 and half of pixel 1: (30 + 0.5·90) / 1.5 = 50.
+        let row = gray(3, 1, vec![30, 90, 60]);
+        let out = resize(&row, Target::Size(2, 1), Interpolation::Area).unwrap();
+        assert_eq!(u8s(&out), [50, 70]);
+        // 3×3 blocks round to nearest: (0·8 + 5) / 9 = 0.56 → 1.
+        let mut data = vec![0u8; 9];
+        data[4] = 5;
+        let block = resize(&gray(3, 3, data), Target::Size(1, 1), Interpolation::Area).unwrap();
+        assert_eq!(u8s(&block), [1]);
+    }
+
+    #[test]
+    fn bilinear_hand_case() {
+        // sx = (dx + ½)/2 − ½ = −¼, ¼, ¾, 1¼: edge, 0.75a + 0.25b, 0.25a + 0.75b, edge.
+        let row = gray(2, 1, vec![0, 100]);
+        let up = resize(&row, Target::Size(4, 1), Interpolation::Bilinear).unwrap();
+        assert_eq!(u8s(&up), [0, 25, 75, 100]);
+        let wide = Image::from_u16(2, 1, Channels::Gray, vec![0, 1000]).unwrap();
+        let up = resize(&wide, Target::Size(4, 1), Interpolation::Bilinear).unwrap();
+        assert_eq!(up.as_u16().unwrap(), &[0, 250, 750, 1000]);
+    }
+
+    #[test]
+    fn identity_size_is_a_copy() {
+        let image = random_u8(13, 7, Channels::Rgb, 5);
+        for method in METHODS {
+            let out = resize(&image, Target::Size(13, 7), method).unwrap();
+            assert_eq!(out, image, "{method:?}");
+            let out = resize(&image, Target::Scale(1.0, 1.0), method).unwrap();
+            assert_eq!(out, image, "{method:?}");
+        }
+    }
+
+    #[test]
+    fn constant_images_stay_constant() {
+        for method in METHODS {
+            for (w, h) in [(1, 1), (3, 9), (17, 5), (40, 40), (7, 13), (100, 3)] {
+                let u8_image = Image::from_u8(12, 10, Channels::Rgba, vec![201; 480]).unwrap();
+                let out = resize(&u8_image, Target::Size(w, h), method).unwrap();
+                assert!(out.as_u8().unwrap().iter().all(|&v| v == 201), "{method:?}");
+                let u16_image = Image::from_u16(9, 11, Channels::Rgb, vec![65535; 297]).unwrap();
+                let out = resize(&u16_image, Target::Size(w, h), method).unwrap();
+                assert!(
+                    out.as_u16().unwrap().iter().all(|&v| v == 65535),
+                    "{method:?}"
+                );
+                let f = Image::from_f32(9, 11, Channels::Gray, vec![0.25; 99]).unwrap();
+                let out = resize(&f, Target::Size(w, h), method).unwrap();
+                assert!(
+                    out.as_f32()
+                        .unwrap()
+                        .iter()
+                        .all(|&v| (v - 0.25).abs() < 1e-6),
+                    "{method:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn scale_sets_size_like_opencv() {
+        let image = random_u8(21, 11, Channels::Gray, 1);
+        let out = resize(&image, Target::Scale(0.5, 0.5), Interpolation::Area).unwrap();
+        // 10.5 → 10 and 5.5 → 6 (ties to even).
+        assert_eq!((out.width(), out.height()), (10, 6));
+        let out = resize(&image, Target::Scale(2.0, 3.0), Interpolation::Bilinear).unwrap();
+        assert_eq!((out.width(), out.height()), (42, 33));
+    }
+
+    #[test]
+    fn tiny_and_empty_images() {
+        let one = gray(1, 1, vec![77]);
+        for method in METHODS {
+            let out = resize(&one, Target::Size(3, 2), method).unwrap();
+            assert_eq!(u8s(&out), [77; 6], "{method:?}");
+        }
+        let empty = gray(0, 0, vec![]);
+        let out = resize(&empty, Target::Scale(2.0, 2.0), Interpolation::Bilinear).unwrap();
+        assert!(out.is_empty());
+        assert!(resize(&empty, Target::Size(2, 2), Interpolation::Bilinear).is_err());
+        assert!(resize(&one, Target::Scale(0.1, 0.1), Interpolation::Area).is_err());
+    }
+
+    #[test]
+    fn output_is_identical_for_any_thread_count() {
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
+        let image = random_u8(301, 203, Channels::Rgb, 2);
+        for (target, method) in [
+            (Target::Scale(2.0, 2.0), Interpolation::Bilinear),
+            (Target::Size(97, 61), Interpolation::Area),
+            (Target::Size(400, 300), Interpolation::Bicubic),
+        ] {
+            let run = || resize(&image, target, method).unwrap();
+            assert_eq!(pool(1).install(run), pool(3).install(run));
+        }
+    }
+
+    #[test]
+    fn area_matches_mean_of_float_samples() {
+        // Non-integer shrink: every output is a convex combination; u8 within 0.5 of f32.
+        let image = random_u8(37, 29, Channels::Rgb, 8);
+        let ours = resize(&image, Target::Size(15, 11), Interpolation::Area).unwrap();
+        let float = resize(&to_f32(&image), Target::Size(15, 11), Interpolation::Area).unwrap();
+        for (&a, &b) in ours.as_u8().unwrap().iter().zip(float.as_f32().unwrap()) {
+            assert!((f32::from(a) - b).abs() <= 0.5 + 1e-3, "{a} vs {b}");
+        }
+        // The mean of the whole image is preserved by area resampling (f32).
+        let total = |v: &[f32]| v.iter().map(|&x| f64::from(x)).sum::<f64>() / v.len() as f64;
+        let input = to_f32(&image);
+        let whole = total(input.as_f32().unwrap());
+        assert!((total(float.as_f32().unwrap()) - whole).abs() < 1e-3);
+    }
+
+    #[test]
+    fn new_checks_params() {
+        let p = |size, scale| ResizeParams {
+            size,
+            scale,
+            interpolation: Interpolation::Bilinear,
+        };
+        assert!(Resize::new(p(Some([10, 10]), None)).is_ok());
+        assert!(Resize::new(p(None, Some([0.5, 2.0]))).is_ok());
+        assert!(Resize::new(p(None, None)).is_err());
+        assert!(Resize::new(p(Some([10, 10]), Some([0.5, 0.5]))).is_err());
+        assert!(Resize::new(p(Some([0, 10]), None)).is_err());
+        assert!(Resize::new(p(None, Some([f64::NAN, 1.0]))).is_err());
+        assert!(Resize::new(p(None, Some([-1.0, 1.0]))).is_err());
+        assert!(Resize::new(p(None, Some([1.0, f64::INFINITY]))).is_err());
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+
+        #[test]
+        fn area_half_of_nearest_double_is_identity(
+            w in 1usize..20, h in 1usize..20, c in prop::sample::select(vec![1usize, 3, 4]),
+            seed in 0u64..1000,
+        ) {
+            let channels = match c { 1 => Channels::Gray, 3 => Channels::Rgb, _ => Channels::Rgba };
+            let image = random_u8(w, h, channels, seed);
+            let up = resize(&image, Target::Size(2 * w, 2 * h), Interpolation::Nearest).unwrap();
+            let back = resize(&up, Target::Size(w, h), Interpolation::Area).unwrap();
+            prop_assert_eq!(&back, &image);
+            let f = to_f32(&image);
+            let up = resize(&f, Target::Scale(2.0, 2.0), Interpolation::Nearest).unwrap();
+            let back = resize(&up, Target::Scale(0.5, 0.5), Interpolation::Area).unwrap();
+            prop_assert_eq!(&back, &f);
+        }
+
+        #[test]
+        fn outputs_stay_within_input_range(
+            w in 1usize..12, h in 1usize..12, dw in 1usize..30, dh in 1usize..30,
+            seed in 0u64..1000,
+        ) {
+            // Bilinear and area are convex combinations of input samples.
+            let data: Vec<f32> = randoms(seed, w * h).iter().map(|&r| r as f32).collect();
+            let lo = data.iter().copied().fold(f32::INFINITY, f32::min);
+            let hi = data.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            let image = Image::from_f32(w, h, Channels::Gray, data).unwrap();
+            for method in [Interpolation::Bilinear, Interpolation::Area, Interpolation::Nearest] {
+                let out = resize(&image, Target::Size(dw, dh), method).unwrap();
+                for &v in out.as_f32().unwrap() {
+                    prop_assert!(v >= lo - 1e-5 && v <= hi + 1e-5, "{:?} {} not in {}..{}", method, v, lo, hi);
+                }
+            }
+        }
     }
 }
