@@ -23,6 +23,10 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::morphology::Dilate>()?;
     registry.register::<filter::morphology::Morphology>()?;
     registry.register::<filter::resize::Resize>()?;
+    registry.register::<filter::pyramid::PyrDown>()?;
+    registry.register::<filter::pyramid::PyrUp>()?;
+    registry.register::<filter::pyramid::Pyramid>()?;
+    registry.register::<filter::pyramid::PyramidReconstruct>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<io::read_image::ReadImage>()?;
