@@ -28,6 +28,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::pyramid::Pyramid>()?;
     registry.register::<filter::pyramid::PyramidReconstruct>()?;
     registry.register::<filter::integral::Integral>()?;
+    registry.register::<filter::warp::WarpAffine>()?;
+    registry.register::<filter::warp::WarpPerspective>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<io::read_image::ReadImage>()?;
