@@ -577,3 +577,366 @@ fn run_taps<T: Sample, const TAPS: usize>(
     });
     dst
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::filter::test_support::{MODES, random_u8};
+    use ocellus_engine::value::Channels;
+    use proptest::prelude::*;
+
+    /// The 9×7 pattern `(37x + 91y + 13xy) mod 256`, input of the OpenCV values below.
+    fn pattern() -> Image {
+        let data = (0..7)
+            .flat_map(|y| (0..9).map(move |x| ((x * 37 + y * 91 + x * y * 13) % 256) as u8))
+            .collect();
+        Image::from_u8(9, 7, Channels::Gray, data).unwrap()
+    }
+
+    /// A smooth u8 image (low-frequency waves), where interpolation errors are small.
+    fn smooth(w: usize, h: usize, channels: Channels) -> Image {
+        let c = channels.count();
+        let mut data = Vec::with_capacity(w * h * c);
+        for y in 0..h {
+            for x in 0..w {
+                for ch in 0..c {
+                    let v = 128.0
+                        + 60.0 * ((x as f64) * 0.11 + ch as f64).sin()
+                        + 50.0 * ((y as f64) * 0.07 - ch as f64).cos();
+                    data.push(v.round() as u8);
+                }
+            }
+        }
+        Image::from_u8(w, h, channels, data).unwrap()
+    }
+
+    fn opts(interpolation: WarpInterpolation, border: BorderMode, value: f64) -> WarpOptions {
+        WarpOptions {
+            size: None,
+            interpolation,
+            border,
+            border_value: value,
+        }
+    }
+
+    fn close(a: &Image, b: &[u8], tol: u8, what: &str) {
+        for (i, (&x, &y)) in a.as_u8().unwrap().iter().zip(b).enumerate() {
+            assert!(x.abs_diff(y) <= tol, "{what} at {i}: {x} vs {y}");
+        }
+    }
+
+    #[test]
+    fn matches_opencv_on_a_pattern() {
+        // cv2.getRotationMatrix2D((4, 3), 20, 1.1), then cv2.warpAffine / cv2.warpPerspective,
+        // OpenCV 5.0.
+        let m = [
+            1.0336618828644994,
+            0.37622215765823563,
+            -1.2633140044327047,
+            -0.37622215765823563,
+            1.0336618828644994,
+            1.4039029820394442,
+        ];
+        let t = Transform::Affine(invert_affine(&m).unwrap());
+        let lin_r101: [u8; 63] = [
+            145, 148, 133, 137, 138, 147, 162, 185, 173, 50, 118, 194, 84, 110, 133, 76, 107, 139,
+            126, 162, 152, 144, 182, 184, 175, 71, 94, 195, 158, 116, 189, 65, 110, 138, 176, 159,
+            101, 112, 136, 163, 172, 123, 105, 87, 149, 62, 158, 88, 126, 180, 120, 158, 150, 101,
+            141, 133, 85, 134, 178, 214, 137, 135, 102,
+        ];
+        let out = warp(
+            &pattern(),
+            &t,
+            &opts(WarpInterpolation::Bilinear, BorderMode::Reflect101, 0.0),
+        )
+        .unwrap();
+        close(&out, &lin_r101, 1, "bilinear reflect_101");
+        let cub_const: [u8; 63] = [
+            49, 56, 102, 145, 138, 160, 164, 238, 163, 50, 130, 224, 74, 94, 121, 44, 98, 142, 118,
+            170, 151, 144, 208, 215, 186, 60, 76, 245, 162, 96, 204, 65, 83, 146, 206, 187, 96,
+            110, 147, 163, 199, 123, 80, 55, 152, 32, 182, 75, 113, 191, 106, 182, 168, 90, 119,
+            153, 59, 157, 200, 236, 100, 122, 68,
+        ];
+        let out = warp(
+            &pattern(),
+            &t,
+            &opts(WarpInterpolation::Bicubic, BorderMode::Constant, 50.0),
+        )
+        .unwrap();
+        close(&out, &cub_const, 1, "bicubic constant");
+        let h = [1.0, 0.1, 0.5, 0.05, 0.9, 0.25, 0.01, 0.02, 1.0];
+        let per_lin_clamp: [u8; 63] = [
+            0, 20, 57, 96, 135, 175, 216, 12, 40, 80, 97, 141, 186, 118, 109, 165, 101, 134, 172,
+            200, 166, 90, 150, 205, 80, 131, 189, 44, 61, 124, 174, 146, 115, 199, 62, 108, 161,
+            153, 108, 131, 166, 129, 88, 176, 144, 44, 47, 121, 55, 182, 136, 199, 104, 190, 34,
+            34, 138, 39, 180, 134, 211, 107, 186,
+        ];
+        let t = Transform::Perspective(invert_3x3(&h).unwrap());
+        let out = warp(
+            &pattern(),
+            &t,
+            &opts(WarpInterpolation::Bilinear, BorderMode::Clamp, 0.0),
+        )
+        .unwrap();
+        close(&out, &per_lin_clamp, 1, "perspective bilinear clamp");
+    }
+
+    #[test]
+    fn identity_is_a_copy() {
+        let image = random_u8(13, 8, Channels::Rgb, 3);
+        let id = Transform::Affine([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+        let idp = Transform::Perspective([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        for interpolation in [
+            WarpInterpolation::Nearest,
+            WarpInterpolation::Bilinear,
+            WarpInterpolation::Bicubic,
+        ] {
+            for mode in MODES {
+                let o = opts(interpolation, mode, 0.0);
+                assert_eq!(warp(&image, &id, &o).unwrap(), image, "{interpolation:?}");
+                assert_eq!(warp(&image, &idp, &o).unwrap(), image, "{interpolation:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn integer_translation_shifts() {
+        let image = random_u8(10, 6, Channels::Gray, 4);
+        // Source → destination: shift right by 3 and down by 2.
+        let t = Transform::Affine(invert_affine(&[1.0, 0.0, 3.0, 0.0, 1.0, 2.0]).unwrap());
+        for interpolation in [
+            WarpInterpolation::Nearest,
+            WarpInterpolation::Bilinear,
+            WarpInterpolation::Bicubic,
+        ] {
+            let out = warp(&image, &t, &opts(interpolation, BorderMode::Constant, 9.0)).unwrap();
+            let (src, dst) = (image.as_u8().unwrap(), out.as_u8().unwrap());
+            for y in 0..6 {
+                for x in 0..10 {
+                    let expected = if x >= 3 && y >= 2 {
+                        src[(y - 2) * 10 + x - 3]
+                    } else {
+                        9
+                    };
+                    assert_eq!(dst[y * 10 + x], expected, "{interpolation:?} {x},{y}");
+                }
+            }
+        }
+        // Wrap: a cyclic shift.
+        let out = warp(
+            &image,
+            &t,
+            &opts(WarpInterpolation::Bilinear, BorderMode::Wrap, 0.0),
+        )
+        .unwrap();
+        let (src, dst) = (image.as_u8().unwrap(), out.as_u8().unwrap());
+        for y in 0..6 {
+            for x in 0..10 {
+                assert_eq!(dst[y * 10 + x], src[((y + 4) % 6) * 10 + (x + 7) % 10]);
+            }
+        }
+    }
+
+    #[test]
+    fn warp_then_inverse_recovers_the_interior() {
+        let image = smooth(80, 60, Channels::Rgb);
+        let a = 0.3f64;
+        let m = [a.cos(), -a.sin(), 20.0, a.sin(), a.cos(), -10.0];
+        let o = opts(WarpInterpolation::Bicubic, BorderMode::Reflect101, 0.0);
+        // Forward (source → destination, inverted inside) then back with inverse_map semantics.
+        let forward = warp(&image, &Transform::Affine(invert_affine(&m).unwrap()), &o).unwrap();
+        let back = warp(&forward, &Transform::Affine(m), &o).unwrap();
+        let (src, dst) = (image.as_u8().unwrap(), back.as_u8().unwrap());
+        for y in 25..40 {
+            for x in 30..50 {
+                for ch in 0..3 {
+                    let i = (y * 80 + x) * 3 + ch;
+                    assert!(
+                        src[i].abs_diff(dst[i]) <= 3,
+                        "{x},{y}: {} vs {}",
+                        src[i],
+                        dst[i]
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn perspective_with_an_affine_matrix_equals_affine() {
+        let image = random_u8(31, 23, Channels::Rgba, 7);
+        let m = [0.9, 0.3, 2.5, -0.2, 1.1, -1.0];
+        let full = [m[0], m[1], m[2], m[3], m[4], m[5], 0.0, 0.0, 1.0];
+        for interpolation in [WarpInterpolation::Bilinear, WarpInterpolation::Bicubic] {
+            for mode in MODES {
+                let o = opts(interpolation, mode, 0.0);
+                let a = warp(&image, &Transform::Affine(m), &o).unwrap();
+                let p = warp(&image, &Transform::Perspective(full), &o).unwrap();
+                assert_eq!(a, p, "{interpolation:?} {mode:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn formats_sizes_and_constants() {
+        // A constant image stays constant inside (any depth), with an output size of its own.
+        let t = Transform::Affine([0.7, 0.2, 1.0, -0.1, 0.8, 2.0]);
+        let mut o = opts(WarpInterpolation::Bicubic, BorderMode::Clamp, 0.0);
+        o.size = Some((25, 17));
+        let u16s = Image::from_u16(12, 9, Channels::Rgb, vec![40_000; 324]).unwrap();
+        let out = warp(&u16s, &t, &o).unwrap();
+        assert_eq!((out.width(), out.height()), (25, 17));
+        assert!(out.as_u16().unwrap().iter().all(|&v| v == 40_000));
+        let f = Image::from_f32(12, 9, Channels::Gray, vec![0.5; 108]).unwrap();
+        let out = warp(&f, &t, &o).unwrap();
+        assert!(
+            out.as_f32()
+                .unwrap()
+                .iter()
+                .all(|&v| (v - 0.5).abs() < 1e-6)
+        );
+        // Empty sources: constant border fills, any other border is an error.
+        let empty = Image::from_u8(0, 0, Channels::Gray, vec![]).unwrap();
+        let mut c = opts(WarpInterpolation::Bilinear, BorderMode::Constant, 7.0);
+        c.size = Some((2, 2));
+        assert_eq!(warp(&empty, &t, &c).unwrap().as_u8().unwrap(), &[7; 4]);
+        c.border = BorderMode::Reflect;
+        c.border_value = 0.0;
+        assert!(warp(&empty, &t, &c).is_err());
+        let one = Image::from_u8(1, 1, Channels::Gray, vec![99]).unwrap();
+        let out = warp(
+            &one,
+            &t,
+            &opts(WarpInterpolation::Bilinear, BorderMode::Clamp, 0.0),
+        );
+        assert_eq!(out.unwrap().as_u8().unwrap(), &[99]);
+    }
+
+    #[test]
+    fn singular_and_bad_matrices_are_rejected() {
+        assert!(invert_affine(&[1.0, 2.0, 0.0, 2.0, 4.0, 0.0]).is_err());
+        assert!(invert_3x3(&[1.0, 2.0, 3.0, 2.0, 4.0, 6.0, 0.0, 0.0, 1.0]).is_err());
+        assert!(invert_3x3(&[0.0; 9]).is_err());
+        let params = |matrix: Vec<Vec<f64>>| WarpAffineParams {
+            matrix,
+            ..WarpAffineParams::default()
+        };
+        assert!(WarpAffine::new(params(vec![vec![1.0, 0.0, 0.0], vec![0.0, 1.0, 0.0]])).is_ok());
+        assert!(WarpAffine::new(params(vec![vec![0.0; 3], vec![0.0; 3]])).is_err());
+        assert!(WarpAffine::new(params(vec![vec![1.0, 0.0], vec![0.0, 1.0]])).is_err());
+        assert!(WarpAffine::new(params(vec![vec![1.0, 0.0, 0.0], vec![0.0, 1.0]])).is_err());
+        assert!(
+            WarpAffine::new(params(vec![vec![f64::NAN, 0.0, 0.0], vec![0.0, 1.0, 0.0]])).is_err()
+        );
+        // A true homography is not affine.
+        let h = vec![
+            vec![1.0, 0.0, 0.0],
+            vec![0.0, 1.0, 0.0],
+            vec![0.1, 0.0, 1.0],
+        ];
+        assert!(WarpAffine::new(params(h.clone())).is_err());
+        let p = WarpPerspectiveParams {
+            matrix: h,
+            ..WarpPerspectiveParams::default()
+        };
+        assert!(WarpPerspective::new(p).is_ok());
+        let p = WarpPerspectiveParams {
+            border: BorderMode::Reflect,
+            border_value: 3.0,
+            ..WarpPerspectiveParams::default()
+        };
+        assert!(WarpPerspective::new(p).is_err());
+        let p = WarpPerspectiveParams {
+            size: Some([0, 3]),
+            ..WarpPerspectiveParams::default()
+        };
+        assert!(WarpPerspective::new(p).is_err());
+    }
+
+    #[test]
+    fn output_is_identical_for_any_thread_count() {
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
+        let image = random_u8(120, 90, Channels::Rgb, 2);
+        let t = Transform::Perspective([1.0, 0.1, 3.0, 0.05, 0.9, -2.0, 0.001, 0.0005, 1.0]);
+        let o = opts(WarpInterpolation::Bicubic, BorderMode::Reflect, 0.0);
+        let run = || warp(&image, &t, &o).unwrap();
+        assert_eq!(pool(1).install(run), pool(3).install(run));
+    }
+
+    #[test]
+    fn matrix_input_overrides_the_parameter() {
+        use ocellus_engine::op::{Inputs, Operator, RunContext};
+        let op = WarpAffine::new(WarpAffineParams::default()).unwrap();
+        let image = random_u8(10, 6, Channels::Gray, 4);
+        let specs = WarpAffine::inputs();
+        let ctx = RunContext {
+            node: "w".into(),
+            threads: 1,
+            element: None,
+        };
+        let shift = Matrix::new(2, 3, vec![1.0, 0.0, 3.0, 0.0, 1.0, 2.0]).unwrap();
+        let values = [
+            Some(Value::image(image.clone())),
+            Some(Value::Matrix(shift.into())),
+        ];
+        let mut out = op.run(&ctx, &Inputs::new(&specs, &values)).unwrap();
+        let Some(Value::Image(shifted)) = out.take("image") else {
+            panic!("no image");
+        };
+        let expected = warp(
+            &image,
+            &Transform::Affine([1.0, 0.0, -3.0, 0.0, 1.0, -2.0]),
+            &opts(WarpInterpolation::Bilinear, BorderMode::Constant, 0.0),
+        )
+        .unwrap();
+        assert_eq!(*shifted, expected);
+        // Unconnected: the identity parameter.
+        let values = [Some(Value::image(image.clone())), None];
+        let mut out = op.run(&ctx, &Inputs::new(&specs, &values)).unwrap();
+        let Some(Value::Image(same)) = out.take("image") else {
+            panic!("no image");
+        };
+        assert_eq!(*same, image);
+        // A singular matrix on the port is an input error.
+        let singular = Matrix::new(2, 3, vec![0.0; 6]).unwrap();
+        let values = [
+            Some(Value::image(image)),
+            Some(Value::Matrix(singular.into())),
+        ];
+        assert!(op.run(&ctx, &Inputs::new(&specs, &values)).is_err());
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(40))]
+
+        #[test]
+        fn inverse_map_equals_inverted_matrix(
+            a in -1.0f64..1.0, b in -0.5f64..0.5, tx in -5.0f64..5.0, ty in -5.0f64..5.0,
+        ) {
+            // Applying M⁻¹ with inverse_map semantics equals inverting M: the operator and the
+            // function agree on which way the matrix maps.
+            let m = [1.0 + a * 0.2, b, tx, -b, 1.0 - a * 0.2, ty];
+            let rows = vec![m[..3].to_vec(), m[3..].to_vec()];
+            let inv = invert_affine(&m).unwrap();
+            let inv_rows = vec![inv[..3].to_vec(), inv[3..].to_vec()];
+            let forward = WarpAffine::new(WarpAffineParams { matrix: rows, ..WarpAffineParams::default() }).unwrap();
+            let inverse = WarpAffine::new(WarpAffineParams { matrix: inv_rows, inverse_map: true, ..WarpAffineParams::default() }).unwrap();
+            let (Transform::Affine(f), Transform::Affine(i)) = (forward.0.transform, inverse.0.transform) else {
+                panic!("affine transforms expected");
+            };
+            for (x, y) in f.iter().zip(&i) {
+                prop_assert!((x - y).abs() < 1e-12);
+            }
+            // And inverting twice gives M back.
+            let back = invert_affine(&inv).unwrap();
+            for (x, y) in back.iter().zip(&m) {
+                prop_assert!((x - y).abs() < 1e-9);
+            }
+        }
+    }
+}
