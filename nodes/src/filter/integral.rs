@@ -128,9 +128,9 @@ impl IntegralImage {
 /// The integral image of `image`: S(x, y) = Σ_{i<x, j<y} I(i, j) per channel.
 pub fn integral(image: &Image) -> IntegralImage {
     match image.data() {
-        PixelData::U8(v) => table(image, v, |s| f64::from(s)),
-        PixelData::U16(v) => table(image, v, |s| f64::from(s)),
-        PixelData::F32(v) => table(image, v, |s| f64::from(s)),
+        PixelData::U8(v) => table(image, v, f64::from),
+        PixelData::U16(v) => table(image, v, f64::from),
+        PixelData::F32(v) => table(image, v, f64::from),
     }
 }
 
