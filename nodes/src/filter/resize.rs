@@ -548,10 +548,13 @@ fn h_linear_u8<const C: usize>(row: &[u8], tx: &Taps, out: &mut [i16]) {
 /// u8 linear vertical pass, OpenCV's SIMD arithmetic:
 /// `(⌊(S₀ ≫ 4)·β₀ / 2¹⁶⌋ + ⌊(S₁ ≫ 4)·β₁ / 2¹⁶⌋ + 2) ≫ 2`.
 fn v_linear_u8(rows: &[&[i16]], _w: &[f32], fixed: &[i32], out: &mut [u8]) {
-    let (b0, b1) = (fixed[0], fixed[1]);
+    // Weights ≤ 2¹¹ and `S ≫ 4` ≤ 32 640 fit 16 bits, so each product's high half is a
+    // `pmulhw`, and the sum (≤ 2 042) stays in 16 bits.
+    let (b0, b1) = (fixed[0] as i16, fixed[1] as i16);
     for ((o, &s0), &s1) in out.iter_mut().zip(rows[0]).zip(rows[1]) {
-        let v = ((i32::from(s0) * b0) >> 16) + ((i32::from(s1) * b1) >> 16);
-        *o = ((v + 2) >> 2).clamp(0, 255) as u8;
+        let a = ((i32::from(s0) * i32::from(b0)) >> 16) as i16;
+        let b = ((i32::from(s1) * i32::from(b1)) >> 16) as i16;
+        *o = (a.wrapping_add(b).wrapping_add(2) >> 2).clamp(0, 255) as u8;
     }
 }
 
