@@ -127,29 +127,42 @@ impl IntegralImage {
 
 /// The integral image of `image`: S(x, y) = Σ_{i<x, j<y} I(i, j) per channel.
 pub fn integral(image: &Image) -> IntegralImage {
+    // Integer rows run their sums in u64 (exact, one-cycle adds), f32 rows in f64.
     match image.data() {
-        PixelData::U8(v) => table(image, v, f64::from),
-        PixelData::U16(v) => table(image, v, f64::from),
-        PixelData::F32(v) => table(image, v, f64::from),
+        PixelData::U8(v) => table(image, v, u64::from, |s: u64| s as f64),
+        PixelData::U16(v) => table(image, v, u64::from, |s: u64| s as f64),
+        PixelData::F32(v) => table(image, v, f64::from, |s: f64| s),
     }
 }
 
 /// The squared integral image of `image`: Q(x, y) = Σ_{i<x, j<y} I(i, j)² per channel.
 pub fn squared_integral(image: &Image) -> IntegralImage {
     match image.data() {
-        PixelData::U8(v) => table(image, v, |s| f64::from(u32::from(s) * u32::from(s))),
-        PixelData::U16(v) => table(image, v, |s| {
-            let s = f64::from(s);
-            s * s
-        }),
-        PixelData::F32(v) => table(image, v, |s| {
-            let s = f64::from(s);
-            s * s
-        }),
+        PixelData::U8(v) => table(
+            image,
+            v,
+            |s| u64::from(u32::from(s) * u32::from(s)),
+            |s: u64| s as f64,
+        ),
+        PixelData::U16(v) => table(image, v, |s| u64::from(s) * u64::from(s), |s: u64| s as f64),
+        PixelData::F32(v) => table(
+            image,
+            v,
+            |s| {
+                let s = f64::from(s);
+                s * s
+            },
+            |s: f64| s,
+        ),
     }
 }
 
-fn table<T: Copy>(image: &Image, src: &[T], value: impl Fn(T) -> f64) -> IntegralImage {
+fn table<T: Copy, A: Copy + Default + std::ops::AddAssign>(
+    image: &Image,
+    src: &[T],
+    value: impl Fn(T) -> A,
+    to_f64: impl Fn(A) -> f64,
+) -> IntegralImage {
     let (w, h, c) = (image.width(), image.height(), image.channels().count());
     let stride = (w + 1) * c;
     let mut sum = vec![0.0; stride * (h + 1)];
@@ -159,9 +172,9 @@ fn table<T: Copy>(image: &Image, src: &[T], value: impl Fn(T) -> f64) -> Integra
             let above = &above[y * stride..];
             let below = &mut below[..stride];
             match c {
-                1 => integrate_row::<T, 1>(row, &above[1..], &mut below[1..], &value),
-                3 => integrate_row::<T, 3>(row, &above[3..], &mut below[3..], &value),
-                4 => integrate_row::<T, 4>(row, &above[4..], &mut below[4..], &value),
+                1 => integrate_row::<T, A, 1>(row, &above[1..], &mut below[1..], &value, &to_f64),
+                3 => integrate_row::<T, A, 3>(row, &above[3..], &mut below[3..], &value, &to_f64),
+                4 => integrate_row::<T, A, 4>(row, &above[4..], &mut below[4..], &value, &to_f64),
                 _ => {}
             }
         }
@@ -176,13 +189,14 @@ fn table<T: Copy>(image: &Image, src: &[T], value: impl Fn(T) -> f64) -> Integra
 
 /// `below[x] = above[x] + Σ_{i ≤ x} row[i]` per channel.
 #[inline]
-fn integrate_row<T: Copy, const C: usize>(
+fn integrate_row<T: Copy, A: Copy + Default + std::ops::AddAssign, const C: usize>(
     row: &[T],
     above: &[f64],
     below: &mut [f64],
-    value: &impl Fn(T) -> f64,
+    value: &impl Fn(T) -> A,
+    to_f64: &impl Fn(A) -> f64,
 ) {
-    let mut run = [0.0f64; C];
+    let mut run = [A::default(); C];
     for ((o, a), p) in below
         .chunks_exact_mut(C)
         .zip(above.chunks_exact(C))
@@ -190,7 +204,7 @@ fn integrate_row<T: Copy, const C: usize>(
     {
         for ch in 0..C {
             run[ch] += value(p[ch]);
-            o[ch] = a[ch] + run[ch];
+            o[ch] = a[ch] + to_f64(run[ch]);
         }
     }
 }

@@ -3,7 +3,7 @@
 //!
 //! [`pyr_down`] blurs with the 5×5 kernel `[1 4 6 4 1]ᵀ[1 4 6 4 1] / 256` (reflect-101 border)
 //! and keeps the even rows and columns; [`pyr_up`] inserts zero rows and columns and blurs with
-//! 4× that kernel (`/ 64`). Integer images sum exactly in u32 and round once at the end
+//! 4× that kernel (`/ 64`). Integer images sum exactly (u8 in u16, u16 in u32) and round once at the end
 //! (`(s + 128) ≫ 8` and `(s + 32) ≫ 6`, as OpenCV), so u8 results are bit-identical to OpenCV's.
 //!
 //! The Laplacian pyramid stores `Gᵢ − pyr_up(Gᵢ₊₁)` in f32, with `Gᵢ₊₁` and `pyr_up` computed in
@@ -333,18 +333,20 @@ trait PyrSample: Copy + Default + Send + Sync + 'static {
     fn finish(acc: Self::Acc, shift: u32) -> Self;
 }
 
+/// u8 sums fit 16 bits: pyr_down's are at most 256 · 255 + 128 and pyr_up's 64 · 255 + 32, so
+/// both passes run in 16-bit lanes.
 impl PyrSample for u8 {
-    type Acc = u32;
+    type Acc = u16;
     #[inline]
-    fn widen(self) -> u32 {
-        u32::from(self)
+    fn widen(self) -> u16 {
+        u16::from(self)
     }
     #[inline]
-    fn k(v: u8) -> u32 {
-        u32::from(v)
+    fn k(v: u8) -> u16 {
+        u16::from(v)
     }
     #[inline]
-    fn finish(acc: u32, shift: u32) -> u8 {
+    fn finish(acc: u16, shift: u32) -> u8 {
         ((acc + (1 << (shift - 1))) >> shift) as u8
     }
 }
