@@ -453,11 +453,26 @@ fn separable(data: &PixelData, g: &Geometry, method: Interpolation) -> PixelData
             },
             v_linear_u8,
         )),
+        PixelData::U8(src) if tx.taps == 4 => PixelData::U8(run_bands(
+            src,
+            g,
+            &ty,
+            |row, out: &mut [i32]| match g.c {
+                1 => h_fixed::<1, 4>(row, &tx, out),
+                3 => h_fixed::<3, 4>(row, &tx, out),
+                _ => h_fixed::<4, 4>(row, &tx, out),
+            },
+            v_cubic_u8,
+        )),
         PixelData::U8(src) => PixelData::U8(run_bands(
             src,
             g,
             &ty,
-            |row, out: &mut [i32]| h_fixed(row, g.c, &tx, out),
+            |row, out: &mut [i32]| match g.c {
+                1 => h_fixed::<1, 8>(row, &tx, out),
+                3 => h_fixed::<3, 8>(row, &tx, out),
+                _ => h_fixed::<4, 8>(row, &tx, out),
+            },
             v_fixed_u8,
         )),
         PixelData::U16(src) => PixelData::U16(run_bands(
@@ -558,19 +573,34 @@ fn v_linear_u8(rows: &[&[i16]], _w: &[f32], fixed: &[i32], out: &mut [u8]) {
     }
 }
 
-/// u8 horizontal pass with 11-bit weights and any tap count.
-fn h_fixed(row: &[u8], c: usize, tx: &Taps, out: &mut [i32]) {
-    let t = tx.taps;
-    for (dx, o) in out.chunks_exact_mut(c).enumerate() {
-        let idx = &tx.index[dx * t..(dx + 1) * t];
-        let w = &tx.fixed[dx * t..(dx + 1) * t];
-        for (ch, oc) in o.iter_mut().enumerate() {
-            *oc = idx
-                .iter()
-                .zip(w)
-                .map(|(&i, &wk)| i32::from(row[i * c + ch]) * wk)
-                .sum();
+/// u8 horizontal pass with 11-bit weights, `T` taps, `C` channels.
+fn h_fixed<const C: usize, const T: usize>(row: &[u8], tx: &Taps, out: &mut [i32]) {
+    for ((o, idx), w) in out
+        .chunks_exact_mut(C)
+        .zip(tx.index.chunks_exact(T))
+        .zip(tx.fixed.chunks_exact(T))
+    {
+        let mut acc = [0i32; C];
+        for k in 0..T {
+            let at = idx[k] * C;
+            if let Some(p) = row.get(at..at + C) {
+                for ch in 0..C {
+                    acc[ch] += i32::from(p[ch]) * w[k];
+                }
+            }
         }
+        o.copy_from_slice(&acc);
+    }
+}
+
+/// u8 vertical pass for 4-tap (bicubic) 11-bit sums: `(Σ β·S + 2²¹) ≫ 22`, saturated. The sums
+/// fit i32: |S| ≤ 1.375 · 2¹¹ · 255 and Σ|β| ≤ 1.375 · 2¹¹ + 2 for Keys' cubic (a = −0.75).
+fn v_cubic_u8(rows: &[&[i32]], _w: &[f32], fixed: &[i32], out: &mut [u8]) {
+    let [r0, r1, r2, r3] = [rows[0], rows[1], rows[2], rows[3]];
+    let [b0, b1, b2, b3] = [fixed[0], fixed[1], fixed[2], fixed[3]];
+    for (x, o) in out.iter_mut().enumerate() {
+        let v = r0[x] * b0 + r1[x] * b1 + r2[x] * b2 + r3[x] * b3;
+        *o = ((v + (1 << 21)) >> 22).clamp(0, 255) as u8;
     }
 }
 
