@@ -471,6 +471,20 @@ fn row_coords(t: &Transform, y: usize, xs: &mut [f64], ys: &mut [f64]) {
 /// Coordinates beyond this many pixels from the origin are clamped (they read the border).
 const COORD_LIMIT: f64 = (1u64 << 30) as f64;
 
+/// ⌊x⌋ for |x| ≤ 2³⁰ by truncation (no SSE4.1 `roundsd`, so `f64::floor` would be a call).
+#[inline]
+fn floor_small(x: f64) -> i64 {
+    let t = x as i64;
+    if (t as f64) > x { t - 1 } else { t }
+}
+
+/// x rounded to nearest, ties to even, for |x| ≤ 2⁵¹ (adding and subtracting 1.5·2⁵²).
+#[inline]
+fn round_small(x: f64) -> i64 {
+    const MAGIC: f64 = 6_755_399_441_055_744.0;
+    ((x + MAGIC) - MAGIC) as i64
+}
+
 fn run<T: Sample>(src: &[T], g: &Geo, t: &Transform, o: &WarpOptions) -> Vec<T> {
     match o.interpolation {
         WarpInterpolation::Nearest => run_nearest(src, g, t, o),
@@ -492,8 +506,8 @@ fn run_nearest<T: Sample>(src: &[T], g: &Geo, t: &Transform, o: &WarpOptions) ->
         let mut ys = vec![0f64; g.dw];
         row_coords(t, y, &mut xs, &mut ys);
         for ((px, &fx), &fy) in out.chunks_exact_mut(c).zip(&xs).zip(&ys) {
-            let sx = fx.clamp(-COORD_LIMIT, COORD_LIMIT).round_ties_even() as isize;
-            let sy = fy.clamp(-COORD_LIMIT, COORD_LIMIT).round_ties_even() as isize;
+            let sx = round_small(fx.clamp(-COORD_LIMIT, COORD_LIMIT)) as isize;
+            let sy = round_small(fy.clamp(-COORD_LIMIT, COORD_LIMIT)) as isize;
             match (map_index(sx, w, o.border), map_index(sy, h, o.border)) {
                 (Some(sx), Some(sy)) => {
                     let at = (sy * w + sx) * c;
@@ -530,9 +544,9 @@ fn run_taps<T: Sample, const TAPS: usize>(
                 fx.clamp(-COORD_LIMIT, COORD_LIMIT),
                 fy.clamp(-COORD_LIMIT, COORD_LIMIT),
             );
-            let (x0, y0) = (fx.floor(), fy.floor());
-            let wx = weights_1d::<TAPS>((fx - x0) as f32);
-            let wy = weights_1d::<TAPS>((fy - y0) as f32);
+            let (x0, y0) = (floor_small(fx), floor_small(fy));
+            let wx = weights_1d::<TAPS>((fx - x0 as f64) as f32);
+            let wy = weights_1d::<TAPS>((fy - y0 as f64) as f32);
             let (sx, sy) = (x0 as isize - before, y0 as isize - before);
             if sx >= 0 && sy >= 0 && sx + TAPS as isize <= wi && sy + TAPS as isize <= hi {
                 // Every tap inside: direct reads.
