@@ -442,6 +442,24 @@ fn separable(data: &PixelData, g: &Geometry, method: Interpolation) -> PixelData
     let tx = axis_taps(g.sw, g.dw, g.scale_x, method);
     let ty = axis_taps(g.sh, g.dh, g.scale_y, method);
     match data {
+        PixelData::U8(src)
+            if method == Interpolation::Bilinear
+                && g.dw == 2 * g.sw
+                && (g.scale_x - 0.5).abs() < 1e-12 =>
+        {
+            // Exact 2× enlargement: the weights alternate ¼ ¾ / ¾ ¼, a vectorizable pattern.
+            PixelData::U8(run_bands(
+                src,
+                g,
+                &ty,
+                |row, out: &mut [i16]| match g.c {
+                    1 => h_double_u8::<1>(row, out),
+                    3 => h_double_u8::<3>(row, out),
+                    _ => h_double_u8::<4>(row, out),
+                },
+                v_linear_u8,
+            ))
+        }
         PixelData::U8(src) if tx.taps == 2 => PixelData::U8(run_bands(
             src,
             g,
@@ -556,6 +574,32 @@ fn h_linear_u8<const C: usize>(row: &[u8], tx: &Taps, out: &mut [i16]) {
                 let s = i32::from(pa[ch]) * w[0] + i32::from(pb[ch]) * w[1];
                 o[ch] = (s >> 4) as i16;
             }
+        }
+    }
+}
+
+/// [`h_linear_u8`] for an exact 2× enlargement: destination pixels 2k + 1 and 2k + 2 weigh
+/// source pixels k and k + 1 by ¾ ¼ and ¼ ¾ (11-bit weights 1536 and 512, so `S ≫ 4` is
+/// `96·a + 32·b`); the first and last pixels copy the edge (`128·s`).
+fn h_double_u8<const C: usize>(row: &[u8], out: &mut [i16]) {
+    let w = row.len() / C;
+    if w == 0 || out.len() != 2 * w * C {
+        return;
+    }
+    for ch in 0..C {
+        out[ch] = 128 * i16::from(row[ch]);
+        out[(2 * w - 1) * C + ch] = 128 * i16::from(row[(w - 1) * C + ch]);
+    }
+    let inner = &mut out[C..(2 * w - 1) * C];
+    for ((pair, p), q) in inner
+        .chunks_exact_mut(2 * C)
+        .zip(row.chunks_exact(C))
+        .zip(row[C..].chunks_exact(C))
+    {
+        for ch in 0..C {
+            let (a, b) = (i16::from(p[ch]), i16::from(q[ch]));
+            pair[ch] = 96 * a + 32 * b;
+            pair[C + ch] = 32 * a + 96 * b;
         }
     }
 }
@@ -1096,6 +1140,36 @@ mod tests {
         let input = to_f32(&image);
         let whole = total(input.as_f32().unwrap());
         assert!((total(float.as_f32().unwrap()) - whole).abs() < 1e-3);
+    }
+
+    #[test]
+    fn double_width_fast_path_matches_the_general_pass() {
+        for w in [1usize, 2, 3, 17] {
+            for c in [1usize, 3, 4] {
+                let row: Vec<u8> = randoms(w as u64 * 7 + c as u64, w * c)
+                    .iter()
+                    .map(|r| (r * 256.0) as u8)
+                    .collect();
+                let tx = axis_taps(w, 2 * w, 0.5, Interpolation::Bilinear);
+                let mut general = vec![0i16; 2 * w * c];
+                let mut fast = vec![0i16; 2 * w * c];
+                match c {
+                    1 => {
+                        h_linear_u8::<1>(&row, &tx, &mut general);
+                        h_double_u8::<1>(&row, &mut fast);
+                    }
+                    3 => {
+                        h_linear_u8::<3>(&row, &tx, &mut general);
+                        h_double_u8::<3>(&row, &mut fast);
+                    }
+                    _ => {
+                        h_linear_u8::<4>(&row, &tx, &mut general);
+                        h_double_u8::<4>(&row, &mut fast);
+                    }
+                }
+                assert_eq!(fast, general, "{w} px × {c}");
+            }
+        }
     }
 
     #[test]
