@@ -405,11 +405,13 @@ fn down<T: PyrSample>(src: &[T], w: usize, h: usize, c: usize) -> Vec<T> {
     if n == 0 || dh == 0 {
         return dst;
     }
-    // Padded column sources: extended position p reads source column cols[p] (p = x + 2).
-    let cols: Vec<usize> = (0..w + 4)
+    // Padded column sources: extended position p reads source column cols[p] (p = x + 2); one
+    // position more than the window needs, so both deinterleaved halves have `dw + 2` pixels.
+    let padded_len = 2 * (dw + 2);
+    let cols: Vec<usize> = (0..padded_len)
         .map(|p| map_index(p as isize - 2, w, BorderMode::Reflect101).unwrap_or(0))
         .collect();
-    let (k1, k4, k6) = (T::k(1), T::k(4), T::k(6));
+    let (k4, k6) = (T::k(4), T::k(6));
     dst.par_chunks_mut(n * BAND_ROWS)
         .enumerate()
         .for_each(|(band, out)| {
@@ -418,50 +420,49 @@ fn down<T: PyrSample>(src: &[T], w: usize, h: usize, c: usize) -> Vec<T> {
             // Horizontal results of source rows 2·y0 − 2 ..= 2·(y0 + rows_out − 1) + 2.
             let count = 2 * rows_out + 3;
             let mut hbuf = vec![T::Acc::default(); count * n];
-            let mut padded = vec![T::Acc::default(); (w + 4) * c];
+            let mut padded = vec![T::Acc::default(); padded_len * c];
+            // Even and odd extended positions, so the 5-tap window becomes contiguous slices:
+            // out[x] = e[x] + 4·o[x] + 6·e[x+1] + 4·o[x+1] + e[x+2].
+            let mut even = vec![T::Acc::default(); (dw + 2) * c];
+            let mut odd = vec![T::Acc::default(); (dw + 2) * c];
             for (r, hrow) in hbuf.chunks_exact_mut(n).enumerate() {
                 let sy =
                     map_index((2 * y0 + r) as isize - 2, h, BorderMode::Reflect101).unwrap_or(0);
                 let row = &src[sy * sn..(sy + 1) * sn];
-                for (p, &sx) in padded.chunks_exact_mut(c).zip(&cols) {
-                    for (d, &s) in p.iter_mut().zip(&row[sx * c..sx * c + c]) {
-                        *d = s.widen();
+                let inside = (w * c).min(padded.len() - 2 * c);
+                for (p, &s) in padded[2 * c..2 * c + inside].iter_mut().zip(row) {
+                    *p = s.widen();
+                }
+                for p in (0..2).chain(w + 2..padded_len) {
+                    let sx = cols[p];
+                    for ch in 0..c {
+                        padded[p * c + ch] = row[sx * c + ch].widen();
                     }
                 }
-                match c {
-                    1 => down_row::<T, 1>(&padded, hrow, k1, k4, k6),
-                    3 => down_row::<T, 3>(&padded, hrow, k1, k4, k6),
-                    _ => down_row::<T, 4>(&padded, hrow, k1, k4, k6),
+                for ((pair, e), o) in padded
+                    .chunks_exact(2 * c)
+                    .zip(even.chunks_exact_mut(c))
+                    .zip(odd.chunks_exact_mut(c))
+                {
+                    e.copy_from_slice(&pair[..c]);
+                    o.copy_from_slice(&pair[c..]);
+                }
+                let (e0, e1, e2) = (&even[..n], &even[c..c + n], &even[2 * c..2 * c + n]);
+                let (o0, o1) = (&odd[..n], &odd[c..c + n]);
+                for (j, hv) in hrow.iter_mut().enumerate() {
+                    *hv = e0[j] + e2[j] + (o0[j] + o1[j]) * k4 + e1[j] * k6;
                 }
             }
             for (i, line) in out.chunks_exact_mut(n).enumerate() {
                 let r = |k: usize| &hbuf[(2 * i + k) * n..(2 * i + k + 1) * n];
                 let (a, b, m, d, e) = (r(0), r(1), r(2), r(3), r(4));
                 for (j, o) in line.iter_mut().enumerate() {
-                    let s = (a[j] + e[j]) * k1 + (b[j] + d[j]) * k4 + m[j] * k6;
+                    let s = a[j] + e[j] + (b[j] + d[j]) * k4 + m[j] * k6;
                     *o = T::finish(s, 8);
                 }
             }
         });
     dst
-}
-
-#[inline]
-fn down_row<T: PyrSample, const C: usize>(
-    padded: &[T::Acc],
-    out: &mut [T::Acc],
-    k1: T::Acc,
-    k4: T::Acc,
-    k6: T::Acc,
-) {
-    for (x, o) in out.chunks_exact_mut(C).enumerate() {
-        let p = &padded[2 * x * C..(2 * x + 5) * C];
-        for ch in 0..C {
-            o[ch] = (p[ch] + p[4 * C + ch]) * k1
-                + (p[C + ch] + p[3 * C + ch]) * k4
-                + p[2 * C + ch] * k6;
-        }
-    }
 }
 
 /// One Gaussian pyramid step up, as `cv::pyrUp`: zeros inserted after every row and column,
