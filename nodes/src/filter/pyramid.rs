@@ -439,13 +439,10 @@ fn down<T: PyrSample>(src: &[T], w: usize, h: usize, c: usize) -> Vec<T> {
                         padded[p * c + ch] = row[sx * c + ch].widen();
                     }
                 }
-                for ((pair, e), o) in padded
-                    .chunks_exact(2 * c)
-                    .zip(even.chunks_exact_mut(c))
-                    .zip(odd.chunks_exact_mut(c))
-                {
-                    e.copy_from_slice(&pair[..c]);
-                    o.copy_from_slice(&pair[c..]);
+                match c {
+                    1 => deinterleave::<T::Acc, 1>(&padded, &mut even, &mut odd),
+                    3 => deinterleave::<T::Acc, 3>(&padded, &mut even, &mut odd),
+                    _ => deinterleave::<T::Acc, 4>(&padded, &mut even, &mut odd),
                 }
                 let (e0, e1, e2) = (&even[..n], &even[c..c + n], &even[2 * c..2 * c + n]);
                 let (o0, o1) = (&odd[..n], &odd[c..c + n]);
@@ -463,6 +460,21 @@ fn down<T: PyrSample>(src: &[T], w: usize, h: usize, c: usize) -> Vec<T> {
             }
         });
     dst
+}
+
+/// Splits the pixels of `padded` into the even-numbered (`even`) and odd-numbered (`odd`) ones.
+#[inline]
+fn deinterleave<A: Copy, const C: usize>(padded: &[A], even: &mut [A], odd: &mut [A]) {
+    for ((pair, e), o) in padded
+        .chunks_exact(2 * C)
+        .zip(even.chunks_exact_mut(C))
+        .zip(odd.chunks_exact_mut(C))
+    {
+        for ch in 0..C {
+            e[ch] = pair[ch];
+            o[ch] = pair[C + ch];
+        }
+    }
 }
 
 /// One Gaussian pyramid step up, as `cv::pyrUp`: zeros inserted after every row and column,
