@@ -53,6 +53,14 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::distance::DistanceTransform>()?;
     registry.register::<filter::flow::Lic>()?;
     registry.register::<filter::flow::EdgeTangentFlow>()?;
+    registry.register::<filter::resize::Resize>()?;
+    registry.register::<filter::pyramid::PyrDown>()?;
+    registry.register::<filter::pyramid::PyrUp>()?;
+    registry.register::<filter::pyramid::Pyramid>()?;
+    registry.register::<filter::pyramid::PyramidReconstruct>()?;
+    registry.register::<filter::integral::Integral>()?;
+    registry.register::<filter::warp::WarpAffine>()?;
+    registry.register::<filter::warp::WarpPerspective>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;

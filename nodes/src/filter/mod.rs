@@ -15,14 +15,18 @@ pub mod gaussian;
 pub mod grayscale;
 pub mod histogram;
 pub mod hit_or_miss;
+pub mod integral;
 pub mod keying;
 pub mod kuwahara;
 pub mod median;
 pub mod morphology;
 pub mod noise;
+pub mod pyramid;
 pub mod rank;
+pub mod resize;
 pub mod sobel;
 pub mod threshold;
+pub mod warp;
 
 #[cfg(test)]
 pub(crate) mod test_support;
