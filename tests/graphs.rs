@@ -8,7 +8,7 @@ mod common;
 use common::{example_graphs, files_below, ocellus, root, stderr, temp_dir};
 
 /// Graphs with a snapshot test below; a new graph must be added here.
-const SNAPSHOTTED: &[&str] = &["edges.ron", "two_branches.ron"];
+const SNAPSHOTTED: &[&str] = &["edges.ron", "filters.ron", "two_branches.ron"];
 
 fn summary(graph: &str, threads: usize) -> String {
     let registry = ocellus_nodes::builtin_registry().unwrap();
@@ -32,6 +32,11 @@ fn check_graph(graph: &str) {
 #[test]
 fn edges() {
     check_graph("edges.ron");
+}
+
+#[test]
+fn filters() {
+    check_graph("filters.ron");
 }
 
 #[test]
