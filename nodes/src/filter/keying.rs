@@ -9,9 +9,11 @@
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::types::PortType;
-use ocellus_engine::value::{Channels, Image, PixelData, Value};
+use ocellus_engine::value::{Channels, Depth, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
 use rayon::prelude::*;
+
+use super::color::{Conversion, convert_color};
 
 /// Pixels per parallel chunk.
 const CHUNK_PIXELS: usize = 1 << 14;
@@ -135,69 +137,6 @@ fn expand_bounds(lower: &[f64], upper: &[f64], n: usize) -> Result<Vec<(f64, f64
     }
 }
 
-/// OpenCV's u8 RGB → HSV (`hsv_shift` 12 tables, H in 0..180).
-struct HsvTables {
-    sdiv: [i32; 256],
-    hdiv: [i32; 256],
-}
-
-const HSV_SHIFT: u32 = 12;
-
-impl HsvTables {
-    fn new() -> HsvTables {
-        let mut sdiv = [0i32; 256];
-        let mut hdiv = [0i32; 256];
-        for i in 1..256 {
-            sdiv[i] = ((255.0 * f64::from(1 << HSV_SHIFT)) / i as f64).round_ties_even() as i32;
-            hdiv[i] =
-                ((180.0 * f64::from(1 << HSV_SHIFT)) / (6.0 * i as f64)).round_ties_even() as i32;
-        }
-        HsvTables { sdiv, hdiv }
-    }
-
-    /// `[h, s, v]` of an RGB u8 pixel, as `cvtColor(COLOR_RGB2HSV)`.
-    fn hsv(&self, r: u8, g: u8, b: u8) -> [u8; 3] {
-        let (r, g, b) = (i32::from(r), i32::from(g), i32::from(b));
-        let v = r.max(g).max(b);
-        let vmin = r.min(g).min(b);
-        let diff = v - vmin;
-        let half = 1 << (HSV_SHIFT - 1);
-        let s = (diff * self.sdiv[v as usize] + half) >> HSV_SHIFT;
-        let h = if v == r {
-            g - b
-        } else if v == g {
-            b - r + 2 * diff
-        } else {
-            r - g + 4 * diff
-        };
-        let mut h = (h * self.hdiv[diff as usize] + half) >> HSV_SHIFT;
-        if h < 0 {
-            h += 180;
-        }
-        [h.clamp(0, 255) as u8, s.clamp(0, 255) as u8, v as u8]
-    }
-}
-
-/// OpenCV's f32 RGB → HSV: H in degrees 0..360, S and V in 0..1 (for inputs in 0..1).
-fn hsv_f32(r: f32, g: f32, b: f32) -> [f32; 3] {
-    let v = r.max(g).max(b);
-    let vmin = r.min(g).min(b);
-    let diff = v - vmin;
-    let s = diff / (v.abs() + f32::EPSILON);
-    let scale = 60.0 / (diff + f32::EPSILON);
-    let mut h = if v == r {
-        (g - b) * scale
-    } else if v == g {
-        (b - r) * scale + 120.0
-    } else {
-        (r - g) * scale + 240.0
-    };
-    if h < 0.0 {
-        h += 360.0;
-    }
-    [h, s, v]
-}
-
 /// Inclusive test with an optionally wrapped first (hue) interval.
 #[inline]
 fn inside<T: PartialOrd + Copy>(v: &[T], bounds: &[(T, T)], wrap_first: bool) -> bool {
@@ -239,6 +178,18 @@ pub fn in_range(
     let n = if lower.len() == 3 && c == 4 { 3 } else { c };
     let bounds = expand_bounds(lower, upper, n)?;
     let wrap = hsv && bounds[0].0 > bounds[0].1;
+    if hsv && image.depth() == Depth::U16 {
+        return Err("hsv takes u8 or f32 images, got u16".into());
+    }
+    // HSV: convert once (OpenCV's tables for u8, its float formula for f32; alpha is kept),
+    // then compare like RGB.
+    let converted;
+    let image = if hsv {
+        converted = convert_color(image, Conversion::RgbToHsv)?;
+        &converted
+    } else {
+        image
+    };
     let mut mask = vec![0u8; w * h];
     match image.data() {
         PixelData::U8(src) => {
@@ -246,29 +197,15 @@ pub fn in_range(
                 .iter()
                 .map(|&(lo, hi)| (int_bound(lo, 255.0), int_bound(hi, 255.0)))
                 .collect();
-            let tables = hsv.then(HsvTables::new);
-            fill_mask(&mut mask, src, c, |p| match &tables {
-                Some(t) => {
-                    let [hh, s, v] = t.hsv(p[0], p[1], p[2]);
-                    let mut px = [i32::from(hh), i32::from(s), i32::from(v), 0];
-                    if n == 4 {
-                        px[3] = i32::from(p[3]);
-                    }
-                    inside(&px[..n], &b, wrap)
+            fill_mask(&mut mask, src, c, |p| {
+                let mut px = [0i32; 4];
+                for (d, &s) in px.iter_mut().zip(p) {
+                    *d = i32::from(s);
                 }
-                None => {
-                    let mut px = [0i32; 4];
-                    for (d, &s) in px.iter_mut().zip(p) {
-                        *d = i32::from(s);
-                    }
-                    inside(&px[..n], &b, false)
-                }
+                inside(&px[..n], &b, wrap)
             });
         }
         PixelData::U16(src) => {
-            if hsv {
-                return Err("hsv takes u8 or f32 images, got u16".into());
-            }
             let b: Vec<(i32, i32)> = bounds
                 .iter()
                 .map(|&(lo, hi)| (int_bound(lo, 65535.0), int_bound(hi, 65535.0)))
@@ -288,15 +225,7 @@ pub fn in_range(
                 .collect();
             fill_mask(&mut mask, src, c, |p| {
                 let mut px = [0f32; 4];
-                if hsv {
-                    let [hh, s, v] = hsv_f32(p[0], p[1], p[2]);
-                    px[..3].copy_from_slice(&[hh, s, v]);
-                    if n == 4 {
-                        px[3] = p[3];
-                    }
-                } else {
-                    px[..c].copy_from_slice(p);
-                }
+                px[..c].copy_from_slice(p);
                 inside(&px[..n], &b, wrap)
             });
         }
@@ -554,8 +483,7 @@ mod tests {
 
     #[test]
     fn hsv_matches_opencv() {
-        // cv2.cvtColor(px, COLOR_RGB2HSV).
-        let tables = HsvTables::new();
+        // cv2.cvtColor(px, COLOR_RGB2HSV): in_range tests each pixel's HSV exactly.
         let cases = [
             ([255, 0, 0], [0, 255, 255]),
             ([0, 255, 0], [60, 255, 255]),
@@ -565,11 +493,22 @@ mod tests {
             ([255, 0, 1], [0, 255, 255]),
             ([1, 2, 3], [105, 170, 3]),
         ];
-        for (p, expected) in cases {
-            assert_eq!(tables.hsv(p[0], p[1], p[2]), expected, "{p:?}");
+        for (p, [h, s, v]) in cases {
+            let bounds = [f64::from(h), f64::from(s), f64::from(v)];
+            let hit = in_range(&rgb(&[p]), &bounds, &bounds, RangeSpace::Hsv).unwrap();
+            assert_eq!(hit.as_u8().unwrap(), &[255], "{p:?}");
+            let below = bounds.map(|b| b - 1.0);
+            let miss = in_range(&rgb(&[p]), &below, &below, RangeSpace::Hsv).unwrap();
+            assert_eq!(miss.as_u8().unwrap(), &[0], "{p:?}");
         }
-        let [h, s, v] = hsv_f32(0.0, 1.0, 0.0);
-        assert!((h - 120.0).abs() < 1e-3 && (s - 1.0).abs() < 1e-6 && v == 1.0);
+        let green = Image::from_f32(1, 1, Channels::Rgb, vec![0.0, 1.0, 0.0]).unwrap();
+        let hit = in_range(
+            &green,
+            &[119.999, 0.999, 1.0],
+            &[120.001, 1.0, 1.0],
+            RangeSpace::Hsv,
+        );
+        assert_eq!(hit.unwrap().as_u8().unwrap(), &[255]);
     }
 
     #[test]
