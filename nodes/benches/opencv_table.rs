@@ -129,7 +129,15 @@ fn cases() -> Vec<Case> {
             "GaussianBlur 5x5 s=1.5",
             "u8 gray,u8 RGB,f32 gray",
             Box::new(|i| {
-                black_box(gaussian_blur(i, 1.5, 1.5, 5, 5, BorderMode::Reflect101, 0.0));
+                black_box(gaussian_blur(
+                    i,
+                    1.5,
+                    1.5,
+                    5,
+                    5,
+                    BorderMode::Reflect101,
+                    0.0,
+                ));
             }),
         ),
         (
@@ -195,7 +203,13 @@ fn cases() -> Vec<Case> {
             "morphologyEx OPEN rect 5x5",
             "u8 gray,u8 RGB",
             Box::new(move |i| {
-                black_box(morphology(i, Operation::Open, &open, 1, MorphBorder::Neutral));
+                black_box(morphology(
+                    i,
+                    Operation::Open,
+                    &open,
+                    1,
+                    MorphBorder::Neutral,
+                ));
             }),
         ),
         (
@@ -203,14 +217,7 @@ fn cases() -> Vec<Case> {
             "u8 gray",
             Box::new(|i| {
                 black_box(
-                    threshold(
-                        i,
-                        ThresholdMethod::Otsu,
-                        ThresholdMode::Binary,
-                        0.0,
-                        255.0,
-                    )
-                    .ok(),
+                    threshold(i, ThresholdMethod::Otsu, ThresholdMode::Binary, 0.0, 255.0).ok(),
                 );
             }),
         ),
@@ -247,8 +254,7 @@ fn median_ms(f: impl Fn()) -> f64 {
         let t0 = Instant::now();
         f();
         times.push(t0.elapsed().as_secs_f64() * 1e3);
-        if times.len() >= MAX_REPEATS || (times.len() >= MIN_REPEATS && start.elapsed() >= TARGET)
-        {
+        if times.len() >= MAX_REPEATS || (times.len() >= MIN_REPEATS && start.elapsed() >= TARGET) {
             break;
         }
     }
