@@ -467,10 +467,14 @@ fn box_row_u8(padded: &[u16], c: usize, taps: usize, inverse: f32, out: &mut [u8
     }
 }
 
-/// The mean of a u8 window sum, rounded as the general path rounds it.
+/// The mean of a u8 window sum, rounded as the general path rounds it: adding 1.5·2²³ leaves
+/// the rounded integer `k` (0 ≤ k < 2²²) in the low mantissa bits, whose low byte is `k` for
+/// the means of u8 samples. This equals `round_small(x) as i32 as u8` and avoids the
+/// saturating float-to-integer conversion, which LLVM does not vectorize for AVX2.
 #[inline(always)]
 fn mean_u8(sum: u16, inverse: f32) -> u8 {
-    round_small(f32::from(sum) * inverse) as i32 as u8
+    const MAGIC: f32 = 12_582_912.0;
+    (f32::from(sum) * inverse + MAGIC).to_bits() as u8
 }
 
 #[inline(always)]
@@ -798,6 +802,14 @@ mod tests {
                     let general = general_u8_mean(&image, kx, ky, mode, value);
                     assert_eq!(fast.as_u8().unwrap(), general, "{w}×{h} {mode:?} {kx}×{ky}");
                 }
+            }
+        }
+        // The rounding trick equals the general rounding for every sum of every fast size.
+        for area in 1..=MAX_U16_AREA {
+            let inverse = (1.0 / area as f64) as f32;
+            for sum in 0..=(255 * area) as u16 {
+                let general = round_small(f32::from(sum) * inverse) as i32 as u8;
+                assert_eq!(mean_u8(sum, inverse), general, "{sum}/{area}");
             }
         }
         // All-255 images reach the largest sums.
