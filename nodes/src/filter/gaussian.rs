@@ -538,14 +538,9 @@ fn filter_bands<P: Passes>(
                 // y .. y + taps_y − 1.
                 for q in y0..y0 + out_rows + taps_y - 1 {
                     match rows.source(q).and_then(|r| src.get(r * n..(r + 1) * n)) {
-                        Some(line) => columns.pad_range_with(
-                            line,
-                            channels,
-                            x0,
-                            wide_constant,
-                            padded,
-                            P::widen,
-                        ),
+                        Some(line) => {
+                            pad_strip(columns, line, channels, x0, wide_constant, padded, P::widen)
+                        }
                         None => padded.fill(wide_constant),
                     }
                     let slot = q % taps_y;
@@ -566,6 +561,21 @@ fn filter_bands<P: Passes>(
             }
         });
     dst
+}
+
+/// [`BorderTable::pad_range_with`] for one strip of a row, compiled for the CPU's vector
+/// extensions (it widens every sample of the row).
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn pad_strip<T: Copy, U: Copy, F: Fn(T) -> U>(
+    columns: &BorderTable,
+    line: &[T],
+    channels: usize,
+    x0: usize,
+    constant: U,
+    padded: &mut [U],
+    widen: F,
+) {
+    columns.pad_range_with(line, channels, x0, constant, padded, widen);
 }
 
 /// The multiply-accumulate arithmetic of one pass.
