@@ -538,14 +538,9 @@ fn filter_bands<P: Passes>(
                 // y .. y + taps_y − 1.
                 for q in y0..y0 + out_rows + taps_y - 1 {
                     match rows.source(q).and_then(|r| src.get(r * n..(r + 1) * n)) {
-                        Some(line) => columns.pad_range_with(
-                            line,
-                            channels,
-                            x0,
-                            wide_constant,
-                            padded,
-                            P::widen,
-                        ),
+                        Some(line) => {
+                            pad_strip(columns, line, channels, x0, wide_constant, padded, P::widen)
+                        }
                         None => padded.fill(wide_constant),
                     }
                     let slot = q % taps_y;
@@ -566,6 +561,21 @@ fn filter_bands<P: Passes>(
             }
         });
     dst
+}
+
+/// [`BorderTable::pad_range_with`] for one strip of a row, compiled for the CPU's vector
+/// extensions (it widens every sample of the row).
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn pad_strip<T: Copy, U: Copy, F: Fn(T) -> U>(
+    columns: &BorderTable,
+    line: &[T],
+    channels: usize,
+    x0: usize,
+    constant: U,
+    padded: &mut [U],
+    widen: F,
+) {
+    columns.pad_range_with(line, channels, x0, constant, padded, widen);
 }
 
 /// The multiply-accumulate arithmetic of one pass.
@@ -590,6 +600,7 @@ trait Mac {
 ///
 /// Common kernel lengths get a version with the taps unrolled and the weights in registers;
 /// the others accumulate blocks of outputs in a small array. Both give the same results.
+#[inline(always)]
 fn weighted_sum<M: Mac>(
     mac: &M,
     src: &[M::In],
@@ -609,6 +620,7 @@ fn weighted_sum<M: Mac>(
     }
 }
 
+#[inline(always)]
 fn unrolled<M: Mac, const K: usize>(
     mac: &M,
     src: &[M::In],
@@ -635,6 +647,7 @@ fn unrolled<M: Mac, const K: usize>(
     }
 }
 
+#[inline(always)]
 fn blocked<M: Mac>(
     mac: &M,
     src: &[M::In],
@@ -711,14 +724,33 @@ impl<T: Sample> Passes for FloatPasses<T> {
     }
 
     fn horizontal(&self, padded: &[f32], out: &mut [f32]) {
-        let mac = FloatMac::<f32>(PhantomData);
-        weighted_sum(&mac, padded, &self.row_offsets, &self.row, out);
+        float_row::<f32>(padded, &self.row_offsets, &self.row, out);
     }
 
     fn vertical(&self, rows: &[f32], offsets: &[usize], out: &mut [T]) {
-        let mac = FloatMac::<T>(PhantomData);
-        weighted_sum(&mac, rows, offsets, &self.column, out);
+        float_row::<T>(rows, offsets, &self.column, out);
     }
+}
+
+/// One row of an f32 pass ([`weighted_sum`] with [`FloatMac`]), compiled for the CPU's vector
+/// extensions; the arithmetic (no fused multiply-add) and so the results do not change.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn float_row<O: Sample>(src: &[f32], offsets: &[usize], weights: &[f32], out: &mut [O]) {
+    let mac = FloatMac::<O>(PhantomData);
+    weighted_sum(&mac, src, offsets, weights, out);
+}
+
+/// One row of a u8 fixed-point pass ([`symmetric_sum`]), compiled for the CPU's vector
+/// extensions (integer arithmetic: identical results).
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn fixed_row(src: &[u16], offsets: &[usize], kernel: &SymmetricQ16, bias: u16, out: &mut [u16]) {
+    symmetric_sum(src, offsets, kernel, bias, out, |a| a);
+}
+
+/// [`fixed_row`] with the final rounding to u8.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn fixed_row_u8(src: &[u16], offsets: &[usize], kernel: &SymmetricQ16, bias: u16, out: &mut [u8]) {
+    symmetric_sum(src, offsets, kernel, bias, out, |a| (a >> 8) as u8);
 }
 
 /// u8 fixed point: 16-bit weights, horizontal results with 8 fractional bits in u16.
@@ -796,6 +828,7 @@ fn average(a: u16, b: u16) -> u16 {
 /// `out[i] = finish(bias + ⌊src[offsets[h] + i] · w_c / 2¹⁶⌋ +
 /// Σ_j ⌊avg(src[offsets[j] + i], src[offsets[2h − j] + i]) · 2w_j / 2¹⁶⌋)` for a kernel of
 /// `2h + 1` taps. Sums stay below 2¹⁶ (module docs), so the wrapping adds are exact.
+#[inline(always)]
 fn symmetric_sum<O>(
     src: &[u16],
     offsets: &[usize],
@@ -817,6 +850,7 @@ fn symmetric_sum<O>(
     }
 }
 
+#[inline(always)]
 fn symmetric_unrolled<O, const H: usize>(
     src: &[u16],
     offsets: &[usize],
@@ -852,6 +886,7 @@ fn symmetric_unrolled<O, const H: usize>(
     }
 }
 
+#[inline(always)]
 fn symmetric_blocked<O>(
     src: &[u16],
     offsets: &[usize],
@@ -904,21 +939,12 @@ impl Passes for FixedU8 {
 
     /// The filtered row with 8 fractional bits (at most 255·256 + 4).
     fn horizontal(&self, padded: &[u16], out: &mut [u16]) {
-        symmetric_sum(
-            padded,
-            &self.row_offsets,
-            &self.row,
-            self.row_bias,
-            out,
-            |a| a,
-        );
+        fixed_row(padded, &self.row_offsets, &self.row, self.row_bias, out);
     }
 
     /// The filtered column, rounded to u8.
     fn vertical(&self, rows: &[u16], offsets: &[usize], out: &mut [u8]) {
-        symmetric_sum(rows, offsets, &self.column, self.column_bias, out, |a| {
-            (a >> 8) as u8
-        });
+        fixed_row_u8(rows, offsets, &self.column, self.column_bias, out);
     }
 }
 
