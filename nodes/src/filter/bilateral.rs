@@ -432,7 +432,6 @@ fn bands<T: Sample, W: ColorWeights<T>, const C: usize>(
         return dst;
     }
     let stride = g.columns.padded_len() * C;
-    let r = g.radius;
     dst.par_chunks_mut(BAND_ROWS * n)
         .enumerate()
         .for_each(|(b, out)| {
@@ -441,32 +440,51 @@ fn bands<T: Sample, W: ColorWeights<T>, const C: usize>(
             let mut sums = vec![0.0f32; n];
             let mut wsum = vec![0.0f32; g.width];
             for (i, line) in out.chunks_exact_mut(n).enumerate() {
-                sums.fill(0.0);
-                wsum.fill(0.0);
-                let centre_start = (i + r) * stride + r * C;
-                let Some(centre) = padded.get(centre_start..centre_start + n) else {
-                    continue;
-                };
-                for &(dy, dx, space) in &g.space {
-                    let start = (i + dy) * stride + dx * C;
-                    let Some(tap) = padded.get(start..start + n) else {
-                        continue;
-                    };
-                    accumulate::<T, W, C>(tap, centre, space, weights, &mut sums, &mut wsum);
-                }
-                for ((o, s), &w) in line
-                    .chunks_exact_mut(C)
-                    .zip(sums.chunks_exact(C))
-                    .zip(&wsum)
-                {
-                    let inverse = 1.0 / w;
-                    for (o, &s) in o.iter_mut().zip(s) {
-                        *o = T::from_mean(s * inverse);
-                    }
-                }
+                filter_row::<T, W, C>(&padded, stride, i, g, weights, &mut sums, &mut wsum, line);
             }
         });
     dst
+}
+
+/// One output row `line` (band row `i`) from the padded band rows `padded` (row stride
+/// `stride`), accumulating tap by tap over the whole row into `sums` and `wsum`.
+#[allow(clippy::too_many_arguments)]
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn filter_row<T: Sample, W: ColorWeights<T>, const C: usize>(
+    padded: &[T],
+    stride: usize,
+    i: usize,
+    g: &Geometry,
+    weights: &W,
+    sums: &mut [f32],
+    wsum: &mut [f32],
+    line: &mut [T],
+) {
+    let n = line.len();
+    let r = g.radius;
+    sums.fill(0.0);
+    wsum.fill(0.0);
+    let centre_start = (i + r) * stride + r * C;
+    let Some(centre) = padded.get(centre_start..centre_start + n) else {
+        return;
+    };
+    for &(dy, dx, space) in &g.space {
+        let start = (i + dy) * stride + dx * C;
+        let Some(tap) = padded.get(start..start + n) else {
+            continue;
+        };
+        accumulate::<T, W, C>(tap, centre, space, weights, sums, wsum);
+    }
+    for ((o, s), &w) in line
+        .chunks_exact_mut(C)
+        .zip(sums.chunks_exact(C))
+        .zip(wsum.iter())
+    {
+        let inverse = 1.0 / w;
+        for (o, &s) in o.iter_mut().zip(s) {
+            *o = T::from_mean(s * inverse);
+        }
+    }
 }
 
 /// Adds one tap (the row `tap`, compared with `centre`) to the sums of one output row.

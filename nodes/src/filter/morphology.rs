@@ -1026,9 +1026,7 @@ impl Pass {
             }
             if rows_in_group <= DIRECT_MAX_TAPS {
                 // Row by row, so that the taps and the output row stay in L1.
-                for (y, line) in out.chunks_exact_mut(n).enumerate() {
-                    direct::<M, T>(&horizontal[y * n..], n, rows_in_group, line, index > 0);
-                }
+                direct_rows::<M, T>(horizontal, n, rows_in_group, out, index > 0);
             } else {
                 window_extremum::<M, T>(horizontal, n, rows_in_group, out, index > 0, scratch);
             }
@@ -1141,8 +1139,24 @@ impl<T> Default for Scratch<T> {
     }
 }
 
+/// [`direct`] over each row of `out` (rows of `n` samples), reading rows `y .. y + len` of
+/// `horizontal` for output row `y`: row by row, so that the taps and the output row stay in L1.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn direct_rows<M: Extremum, T: Sample>(
+    horizontal: &[T],
+    n: usize,
+    len: usize,
+    out: &mut [T],
+    combine: bool,
+) {
+    for (y, line) in out.chunks_exact_mut(n).enumerate() {
+        direct::<M, T>(&horizontal[y * n..], n, len, line, combine);
+    }
+}
+
 /// `out[i] = op_{k < len} src[i + k·stride]` (combined with the old `out[i]` when `combine`).
 /// `src` holds `out.len() + (len − 1)·stride` samples; `out.len()` is a multiple of `stride`.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
 fn window_extremum<M: Extremum, T: Sample>(
     src: &[T],
     stride: usize,
@@ -1167,6 +1181,7 @@ fn window_extremum<M: Extremum, T: Sample>(
 
 /// The extremum of `len` shifted slices, two taps per pass over `out` (vectorizes).
 /// `src` holds at least `out.len() + (len − 1)·stride` samples.
+#[inline(always)]
 fn direct<M: Extremum, T: Sample>(
     src: &[T],
     stride: usize,
@@ -1179,6 +1194,43 @@ fn direct<M: Extremum, T: Sample>(
         return;
     }
     let tap = |k: usize| &src[k * stride..k * stride + n];
+    // Short windows in one pass over `out` (fewer loads and stores than pairs of taps).
+    match (len, combine) {
+        (3, false) => {
+            for (((o, &a), &b), &c) in out.iter_mut().zip(tap(0)).zip(tap(1)).zip(tap(2)) {
+                *o = M::pick(M::pick(a, b), c);
+            }
+            return;
+        }
+        (5, false) => {
+            let taps = out
+                .iter_mut()
+                .zip(tap(0))
+                .zip(tap(1))
+                .zip(tap(2))
+                .zip(tap(3))
+                .zip(tap(4));
+            for (((((o, &a), &b), &c), &d), &e) in taps {
+                *o = M::pick(M::pick(M::pick(a, b), M::pick(c, d)), e);
+            }
+            return;
+        }
+        (5, true) => {
+            let taps = out
+                .iter_mut()
+                .zip(tap(0))
+                .zip(tap(1))
+                .zip(tap(2))
+                .zip(tap(3))
+                .zip(tap(4));
+            for (((((o, &a), &b), &c), &d), &e) in taps {
+                // The pairing of the general loop below (same result for NaN too).
+                *o = M::pick(M::pick(M::pick(*o, M::pick(a, b)), M::pick(c, d)), e);
+            }
+            return;
+        }
+        _ => {}
+    }
     let mut k = 1;
     match (combine, len) {
         (false, 1) => out.copy_from_slice(tap(0)),
@@ -1217,6 +1269,7 @@ fn direct<M: Extremum, T: Sample>(
 /// power of two ≤ `len`) each from two of the previous ones, then
 /// `out[i] = op(w_p[i], w_p[i + (len − p)·stride])`. ⌈log₂ len⌉ vectorized passes, which along
 /// rows of few channels beats the scalar van Herk recurrences for moderate lengths.
+#[inline(always)]
 fn doubling<M: Extremum, T: Sample>(
     src: &[T],
     stride: usize,
@@ -1259,6 +1312,7 @@ fn doubling<M: Extremum, T: Sample>(
 
 /// van Herk / Gil-Werman: running extrema within blocks of `len` positions from both ends, then
 /// one comparison per output. `src` holds exactly `out.len() + (len − 1)·stride` samples.
+#[inline(always)]
 fn van_herk<M: Extremum, T: Sample>(
     src: &[T],
     stride: usize,

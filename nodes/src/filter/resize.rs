@@ -562,6 +562,7 @@ where
 
 /// u8 linear horizontal pass: `S = α₀·a + α₁·b` with 11-bit weights, stored as `S ≫ 4` in 16
 /// bits (OpenCV's SIMD vertical pass reads `S ≫ 4`).
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
 fn h_linear_u8<const C: usize>(row: &[u8], tx: &Taps, out: &mut [i16]) {
     for ((o, idx), w) in out
         .chunks_exact_mut(C)
@@ -581,6 +582,7 @@ fn h_linear_u8<const C: usize>(row: &[u8], tx: &Taps, out: &mut [i16]) {
 /// [`h_linear_u8`] for an exact 2× enlargement: destination pixels 2k + 1 and 2k + 2 weigh
 /// source pixels k and k + 1 by ¾ ¼ and ¼ ¾ (11-bit weights 1536 and 512, so `S ≫ 4` is
 /// `96·a + 32·b`); the first and last pixels copy the edge (`128·s`).
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
 fn h_double_u8<const C: usize>(row: &[u8], out: &mut [i16]) {
     let w = row.len() / C;
     if w == 0 || out.len() != 2 * w * C {
@@ -606,6 +608,7 @@ fn h_double_u8<const C: usize>(row: &[u8], out: &mut [i16]) {
 
 /// u8 linear vertical pass, OpenCV's SIMD arithmetic:
 /// `(⌊(S₀ ≫ 4)·β₀ / 2¹⁶⌋ + ⌊(S₁ ≫ 4)·β₁ / 2¹⁶⌋ + 2) ≫ 2`.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
 fn v_linear_u8(rows: &[&[i16]], _w: &[f32], fixed: &[i32], out: &mut [u8]) {
     // Weights ≤ 2¹¹ and `S ≫ 4` ≤ 32 640 fit 16 bits, so each product's high half is a
     // `pmulhw`, and the sum (≤ 2 042) stays in 16 bits.
@@ -618,6 +621,7 @@ fn v_linear_u8(rows: &[&[i16]], _w: &[f32], fixed: &[i32], out: &mut [u8]) {
 }
 
 /// u8 horizontal pass with 11-bit weights, `T` taps, `C` channels.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
 fn h_fixed<const C: usize, const T: usize>(row: &[u8], tx: &Taps, out: &mut [i32]) {
     for ((o, idx), w) in out
         .chunks_exact_mut(C)
@@ -639,6 +643,7 @@ fn h_fixed<const C: usize, const T: usize>(row: &[u8], tx: &Taps, out: &mut [i32
 
 /// u8 vertical pass for 4-tap (bicubic) 11-bit sums: `(Σ β·S + 2²¹) ≫ 22`, saturated. The sums
 /// fit i32: |S| ≤ 1.375 · 2¹¹ · 255 and Σ|β| ≤ 1.375 · 2¹¹ + 2 for Keys' cubic (a = −0.75).
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
 fn v_cubic_u8(rows: &[&[i32]], _w: &[f32], fixed: &[i32], out: &mut [u8]) {
     let [r0, r1, r2, r3] = [rows[0], rows[1], rows[2], rows[3]];
     let [b0, b1, b2, b3] = [fixed[0], fixed[1], fixed[2], fixed[3]];
@@ -649,6 +654,7 @@ fn v_cubic_u8(rows: &[&[i32]], _w: &[f32], fixed: &[i32], out: &mut [u8]) {
 }
 
 /// u8 vertical pass for 11-bit sums: `(Σ β·S + 2²¹) ≫ 22`, saturated.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
 fn v_fixed_u8(rows: &[&[i32]], _w: &[f32], fixed: &[i32], out: &mut [u8]) {
     let mut acc = vec![0i64; out.len()];
     for (r, &b) in rows.iter().zip(fixed) {
@@ -749,17 +755,23 @@ fn half_u8_like<T: Integer>(src: &[T], g: &Geometry) -> Vec<T> {
                 let sy = 2 * (band * BAND_ROWS + i);
                 let r0 = &src[sy * sn..sy * sn + 2 * n];
                 let r1 = &src[(sy + 1) * sn..(sy + 1) * sn + 2 * n];
-                match c {
-                    1 => half_row::<T, 1>(r0, r1, line),
-                    3 => half_row::<T, 3>(r0, r1, line),
-                    _ => half_row::<T, 4>(r0, r1, line),
-                }
+                half_row_any(c, r0, r1, line);
             }
         });
     dst
 }
 
-#[inline]
+/// [`half_row`] for any channel count, compiled for several instruction sets.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn half_row_any<T: Integer>(c: usize, r0: &[T], r1: &[T], out: &mut [T]) {
+    match c {
+        1 => half_row::<T, 1>(r0, r1, out),
+        3 => half_row::<T, 3>(r0, r1, out),
+        _ => half_row::<T, 4>(r0, r1, out),
+    }
+}
+
+#[inline(always)]
 fn half_row<T: Integer, const C: usize>(r0: &[T], r1: &[T], out: &mut [T]) {
     for ((o, a), b) in out
         .chunks_exact_mut(C)
