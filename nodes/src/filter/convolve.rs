@@ -18,7 +18,7 @@ use ocellus_engine::{param_enum, params};
 use rayon::prelude::*;
 
 use super::border::{BorderMode, BorderTable, check_border_value};
-use super::gaussian::separable_filter;
+use super::gaussian::{Sample, separable_filter};
 use super::sobel::to_f32;
 
 /// Largest kernel side, in taps.
@@ -425,58 +425,6 @@ fn finish(
 }
 
 /// A sample type of the dense path.
-trait Sample: Copy + Default + Send + Sync + 'static {
-    fn to_f32(self) -> f32;
-    /// Nearest value (ties to even), saturated; NaN gives 0 for integer types.
-    fn from_f32(x: f32) -> Self;
-    /// The border constant: nearest value, saturated.
-    fn from_f64(x: f64) -> Self;
-}
-
-/// Adding and subtracting 1.5·2²³ rounds an f32 to an integer, ties to even, for |x| < 2²²
-/// (larger values saturate in the integer conversion anyway), and vectorizes unlike
-/// `round_ties_even`.
-fn round_small(x: f32) -> f32 {
-    const MAGIC: f32 = 12_582_912.0;
-    (x + MAGIC) - MAGIC
-}
-
-impl Sample for u8 {
-    fn to_f32(self) -> f32 {
-        f32::from(self)
-    }
-    fn from_f32(x: f32) -> Self {
-        round_small(x) as u8
-    }
-    fn from_f64(x: f64) -> Self {
-        x.round_ties_even() as u8
-    }
-}
-
-impl Sample for u16 {
-    fn to_f32(self) -> f32 {
-        f32::from(self)
-    }
-    fn from_f32(x: f32) -> Self {
-        round_small(x) as u16
-    }
-    fn from_f64(x: f64) -> Self {
-        x.round_ties_even() as u16
-    }
-}
-
-impl Sample for f32 {
-    fn to_f32(self) -> f32 {
-        self
-    }
-    fn from_f32(x: f32) -> Self {
-        x
-    }
-    fn from_f64(x: f64) -> Self {
-        x as f32
-    }
-}
-
 /// Direct 2-D correlation with any kernel (module docs), producing only the pixels the stride
 /// keeps.
 pub fn correlate_dense(image: &Image, kernel: &Kernel, options: &ConvolveOptions) -> Image {

@@ -421,7 +421,7 @@ struct Geometry {
 }
 
 /// A sample type: conversion to and from the f32 accumulators.
-trait Sample: Copy + Default + Send + Sync + 'static {
+pub(crate) trait Sample: Copy + Default + Send + Sync + 'static {
     fn to_f32(self) -> f32;
     /// Nearest value, ties to even, saturated (NaN gives 0 for integer types).
     fn from_f32(x: f32) -> Self;
