@@ -13,7 +13,7 @@ use rayon::prelude::*;
 params! {
     /// Parameters of `capture.sequence`.
     pub struct SequenceParams {
-        /// A folder (every image file in it: png, jpg/jpeg, pgm/ppm/pnm/pam, tif/tiff, pfm), or a
+        /// A folder (every image file in it: png, jpg/jpeg, pgm/ppm/pnm/pam, tif/tiff, pfm, exr), or a
         /// pattern whose last component holds `*` (any run of characters) and `?` (one
         /// character), e.g. "frames/cam0_*.png". Relative paths resolve against the graph
         /// file's folder. Required.
@@ -40,7 +40,7 @@ impl Op for Sequence {
         "Reads an ordered sequence of image files from a folder or a pattern as a list.";
     const DOC: &'static str = r#"
 Lists the files of a folder (image extensions only: png, jpg, jpeg, pgm, ppm, pnm, pam, tif,
-tiff, pfm, any case) or those matching a pattern in its last path component (`*` matches
+tiff, pfm, exr, any case) or those matching a pattern in its last path component (`*` matches
 any run of characters, `?` one character, case-sensitive; no other syntax, and wildcards in
 earlier components are an error). Names starting with `.` are skipped unless the pattern
 starts with `.`; only regular files (or links to them) count.
@@ -200,7 +200,9 @@ pub fn list_sequence(path: &Path) -> Result<Vec<PathBuf>, OpError> {
     if names.is_empty() {
         let what = match &pattern {
             Some(p) => format!("no file matches `{p}`"),
-            None => "no image file (png, jpg, jpeg, pgm, ppm, pnm, pam, tif, tiff, pfm)".into(),
+            None => {
+                "no image file (png, jpg, jpeg, pgm, ppm, pnm, pam, tif, tiff, pfm, exr)".into()
+            }
         };
         return Err(OpError::failed(format!(
             "{what} in folder {}",
