@@ -2,15 +2,24 @@
 //! semantics.
 //!
 //! Three methods, chosen by [`MedianMethod::auto`]:
-//! - **Network** (ksize 3 and 5, every depth): a comparator network applied to many samples at
-//!   once. For each output row the `k` source rows of the window are first sorted column-wise
-//!   (3 or 9 comparators per column, shared by the `k` windows that contain the column); the
-//!   median of the `k` sorted columns of a window is then selected by a network pruned for
-//!   sorted columns: 10 comparators for 3×3 (max of the lows, median of the middles, min of the
-//!   highs, then their median) and 85 for 5×5 (Batcher's odd-even merge network pruned, with
-//!   the 0-1 principle over all sorted-column inputs, to the comparators that can swap and that
-//!   reach the median). Each comparator is an element-wise min/max over an array of samples
-//!   (32 u8, 16 u16 or 8 f32) so that it compiles to SIMD min/max instructions.
+//! - **Network** (ksize 3 and 5, every depth): comparator networks applied to many samples at
+//!   once. 3×3: for each output row the 3 source rows are sorted column-wise (3 comparators per
+//!   column, shared by the 3 windows that contain the column), then 10 comparators select the
+//!   median of a window's 3 sorted columns (max of the lows, median of the middles, min of the
+//!   highs, then their median). 5×5: every source row is sorted horizontally in runs of 5
+//!   (9 comparators, once per row); two vertically adjacent windows share 4 of their 5 runs, a
+//!   network of 51 comparators finds the only 6 ranks of those 20 samples that can be a median,
+//!   and each window's median then takes 10 more comparators with its own run (see
+//!   `network_band5`): 71 comparators per two outputs where a plain pruned 25-input network
+//!   needs 85 per output. The networks are Batcher's odd-even merge sort pruned with the 0-1
+//!   principle over all sorted-run inputs to the comparators that can swap and that reach the
+//!   wanted ranks. Each comparator is an element-wise min/max over an array of samples (32 u8,
+//!   16 u16 or 8 f32) so that it compiles to SIMD min/max instructions. The lanes of a network
+//!   are built from an array literal and indexed by constants only, so the compiler keeps them
+//!   in registers; the band kernels are compiled for AVX2 and SSE4.1 as well and picked at run
+//!   time. Interleaved channels need no special case: the neighbours of a sample are `c`
+//!   samples apart, so each lane holds consecutive samples of a row and the shifted loads are
+//!   offsets of `c`.
 //! - **Histogram** (u8, ksize ≥ 7): the constant-time method of Perreault & Hébert: per-column
 //!   histograms (updated by one row in and one row out per output row) and a kernel histogram
 //!   (one column in and one column out per output pixel), both with 16 coarse bins of 16 fine
@@ -20,8 +29,8 @@
 //! - **Sort** (every other case: u16 and f32 with ksize ≥ 7): gathers each window and selects
 //!   the middle sample (`select_nth_unstable`), O(k²) per sample.
 //!
-//! Crossover, measured on a 1080p gray u8 image, one thread (CPU time, rough): network 2 ms
-//! (3×3) and 13 ms (5×5); histogram about 85 ms for every ksize from 3 to 15; sort 170 ms
+//! Crossover, measured on a 1080p gray u8 image, one thread (rough): network 1.6 ms (5×5, the
+//! `opencv_table` bench; OpenCV's `medianBlur` takes 1.7 ms there); histogram about 85 ms for every ksize from 3 to 15; sort 170 ms
 //! (3×3), 390 ms (5×5), 650 ms (7×7). Hence networks for 3 and 5, histograms from 7 up for u8
 //! (no network is generated for 7×7), and sorting only where neither applies.
 //!
@@ -315,10 +324,28 @@ fn pad_band<T: Sample>(
     constant: T,
     slack: usize,
 ) -> Padded<T> {
+    pad_band_into(src, g, y0, rows, constant, slack, Vec::new())
+}
+
+/// [`pad_band`] into a reused buffer.
+fn pad_band_into<T: Sample>(
+    src: &[T],
+    g: &Geometry,
+    y0: usize,
+    rows: usize,
+    constant: T,
+    slack: usize,
+    mut data: Vec<T>,
+) -> Padded<T> {
     let n = g.width * g.channels;
     let stride = g.columns.padded_len() * g.channels;
     let total = rows + g.ksize - 1;
-    let mut data = vec![constant; total * stride + slack];
+    // Every row is written below; a reused buffer of the right length keeps its slack, which
+    // only feeds lanes past the row ends that are never stored.
+    if data.len() != total * stride + slack {
+        data.clear();
+        data.resize(total * stride + slack, constant);
+    }
     for (j, dst) in data.chunks_exact_mut(stride).take(total).enumerate() {
         match g
             .rows
@@ -381,18 +408,35 @@ fn sort_band<T: Sample>(padded: &Padded<T>, g: &Geometry, out: &mut [T]) {
 }
 
 /// Compare-exchange of lanes `a` and `b` of `v`: element-wise min into `a`, max into `b`.
+///
+/// `v` is a fixed-size array indexed by constants only (the networks below) and built from an
+/// array literal, so that the compiler keeps its lanes in SIMD registers rather than in memory.
+/// The element loops (not `array::from_fn`) are what LLVM turns into one SIMD min and max.
 #[inline(always)]
-fn cas<T: Sample, const L: usize>(v: &mut [[T; L]], a: usize, b: usize) {
-    if let (Some(&x), Some(&y)) = (v.get(a), v.get(b)) {
-        let mut lo = [T::default(); L];
-        let mut hi = [T::default(); L];
-        for l in 0..L {
-            lo[l] = T::lo(x[l], y[l]);
-            hi[l] = T::hi(x[l], y[l]);
-        }
-        v[a] = lo;
-        v[b] = hi;
+fn cas<T: Sample, const L: usize, const N: usize>(v: &mut [[T; L]; N], a: usize, b: usize) {
+    let (x, y) = (v[a], v[b]);
+    v[a] = lane_min(x, y);
+    v[b] = lane_max(x, y);
+}
+
+/// Element-wise minimum of two lanes.
+#[inline(always)]
+fn lane_min<T: Sample, const L: usize>(x: [T; L], y: [T; L]) -> [T; L] {
+    let mut out = [T::default(); L];
+    for ((o, &a), &b) in out.iter_mut().zip(&x).zip(&y) {
+        *o = T::lo(a, b);
     }
+    out
+}
+
+/// Element-wise maximum of two lanes.
+#[inline(always)]
+fn lane_max<T: Sample, const L: usize>(x: [T; L], y: [T; L]) -> [T; L] {
+    let mut out = [T::default(); L];
+    for ((o, &a), &b) in out.iter_mut().zip(&x).zip(&y) {
+        *o = T::hi(a, b);
+    }
+    out
 }
 
 macro_rules! network {
@@ -403,46 +447,31 @@ macro_rules! network {
 
 /// Sorts 3 lanes.
 #[inline(always)]
-fn sort3<T: Sample, const L: usize>(v: &mut [[T; L]]) {
+fn sort3<T: Sample, const L: usize>(v: &mut [[T; L]; 3]) {
     network!(v; 0 1, 1 2, 0 1);
 }
 
 /// Sorts 5 lanes (9 comparators, optimal).
 #[inline(always)]
-fn sort5<T: Sample, const L: usize>(v: &mut [[T; L]]) {
+fn sort5<T: Sample, const L: usize>(v: &mut [[T; L]; 5]) {
     network!(v; 0 1, 3 4, 2 4, 2 3, 0 3, 0 2, 1 4, 1 3, 1 2);
 }
 
 /// Median (into lane 4) of 9 lanes made of 3 sorted columns (lane `3·dx + dy`).
 #[inline(always)]
-fn median9_sorted_columns<T: Sample, const L: usize>(v: &mut [[T; L]]) {
+fn median9_sorted_columns<T: Sample, const L: usize>(v: &mut [[T; L]; 9]) {
     // Max of the lows, median of the middles, min of the highs, then their median.
     network!(v; 0 3, 3 6, 2 5, 2 8, 1 4, 4 7, 1 4, 2 4, 4 6, 2 4);
 }
 
-/// Median (into lane 12) of 25 lanes made of 5 sorted columns (lane `5·dx + dy`): Batcher's
-/// odd-even merge network for 32 inputs, restricted to 25 and pruned to the comparators that
-/// can swap on sorted columns and that reach lane 12 (checked on all 6⁵ 0-1 inputs).
-#[inline(always)]
-fn median25_sorted_columns<T: Sample, const L: usize>(v: &mut [[T; L]]) {
-    network!(v;
-        4 5, 14 15, 5 7, 8 10, 9 11, 12 14, 5 6, 9 10, 13 14, 0 4, 1 5, 2 6, 8 12, 10 14, 11 15,
-        16 20, 17 21, 18 22, 19 23, 2 4, 3 5, 10 12, 11 13, 18 20, 19 21, 1 2, 3 4, 5 6, 9 10,
-        11 12, 13 14, 17 18, 19 20, 21 22, 0 8, 1 9, 2 10, 3 11, 4 12, 5 13, 6 14, 7 15, 4 8,
-        5 9, 6 10, 7 11, 20 24, 2 4, 3 5, 6 8, 7 9, 10 12, 11 13, 22 24, 1 2, 3 4, 5 6, 7 8,
-        9 10, 11 12, 13 14, 21 22, 23 24, 0 16, 1 17, 2 18, 3 19, 4 20, 5 21, 6 22, 7 23, 8 24,
-        8 16, 9 17, 10 18, 11 19, 12 20, 13 21, 6 10, 7 11, 12 16, 13 17, 10 12, 11 13, 11 12,
-    );
-}
-
-/// `L` samples of `data` from `start` (zeros past the end).
+/// `L` samples of `data` from `start` (zeros past the end; the callers' slices are long
+/// enough, so the fallback is never taken and compiles away).
 #[inline(always)]
 fn load<T: Sample, const L: usize>(data: &[T], start: usize) -> [T; L] {
-    let mut lane = [T::default(); L];
-    if let Some(src) = data.get(start..start + L) {
-        lane.copy_from_slice(src);
+    match data.get(start..start + L).map(<[T; L]>::try_from) {
+        Some(Ok(lane)) => lane,
+        _ => [T::default(); L],
     }
-    lane
 }
 
 /// Network median (ksize 3 or 5) of an image, `L` samples per comparator.
@@ -451,77 +480,298 @@ fn network<T: Sample, const L: usize>(
     g: &Geometry,
     constant: T,
 ) -> Result<Vec<T>, String> {
-    match g.ksize {
-        3 => Ok(network_bands::<T, L, 3, 9>(src, g, constant)),
-        5 => Ok(network_bands::<T, L, 5, 25>(src, g, constant)),
-        k => Err(format!("the network median takes ksize 3 or 5, got {k}")),
+    if g.ksize != 3 && g.ksize != 5 {
+        return Err(format!(
+            "the network median takes ksize 3 or 5, got {}",
+            g.ksize
+        ));
     }
-}
-
-fn network_bands<T: Sample, const L: usize, const K: usize, const KK: usize>(
-    src: &[T],
-    g: &Geometry,
-    constant: T,
-) -> Vec<T> {
     let c = g.channels;
     let n = g.width * c;
     let mut dst = vec![T::default(); src.len()];
     if n == 0 {
-        return dst;
+        return Ok(dst);
     }
-    dst.par_chunks_mut(BAND_ROWS * n)
-        .enumerate()
-        .for_each(|(b, out)| {
+    // Scratch buffers (padded rows, sorted runs) are reused across the bands a worker takes.
+    dst.par_chunks_mut(BAND_ROWS * n).enumerate().for_each_init(
+        || (Vec::new(), Vec::new()),
+        |(pad_buffer, runs), (b, out)| {
             let rows = out.len() / n;
-            let padded = pad_band(src, g, b * BAND_ROWS, rows, constant, L);
-            let stride = padded.stride;
-            // Column-sorted copies of the K rows of the current window, with slack for reads
-            // past the end.
-            let mut sorted = vec![vec![T::default(); stride + L]; K];
-            for (i, line) in out.chunks_exact_mut(n).enumerate() {
-                let base = i * stride;
-                for s in (0..stride).step_by(L) {
-                    let mut v = [[T::default(); L]; K];
-                    for (dy, lane) in v.iter_mut().enumerate() {
-                        *lane = load(&padded.data, base + dy * stride + s);
-                    }
-                    if K == 3 {
-                        sort3(&mut v);
-                    } else {
-                        sort5(&mut v);
-                    }
-                    for (row, lane) in sorted.iter_mut().zip(&v) {
-                        if let Some(dst) = row.get_mut(s..s + L) {
-                            dst.copy_from_slice(lane);
-                        }
-                    }
-                }
-                for s in (0..n).step_by(L) {
-                    let mut v = [[T::default(); L]; KK];
-                    for dx in 0..K {
-                        for dy in 0..K {
-                            if let (Some(row), Some(lane)) =
-                                (sorted.get(dy), v.get_mut(dx * K + dy))
-                            {
-                                *lane = load(row, s + dx * c);
-                            }
-                        }
-                    }
-                    let m = if K == 3 {
-                        median9_sorted_columns(&mut v);
-                        v[4]
-                    } else {
-                        median25_sorted_columns(&mut v);
-                        v[12]
-                    };
-                    let end = (s + L).min(n);
-                    if let Some(dst) = line.get_mut(s..end) {
-                        dst.copy_from_slice(&m[..end - s]);
-                    }
-                }
+            if g.ksize == 3 {
+                let buffer = std::mem::take(pad_buffer);
+                let padded = pad_band_into(src, g, b * BAND_ROWS, rows, constant, L, buffer);
+                network_band3::<T, L>(&padded, c, n, out);
+                *pad_buffer = padded.data;
+            } else {
+                let source = SourceRows {
+                    src,
+                    g,
+                    y0: b * BAND_ROWS,
+                    constant,
+                };
+                network_band5::<T, L>(&source, n, out, pad_buffer, runs);
             }
-        });
-    dst
+        },
+    );
+    Ok(dst)
+}
+
+/// 3×3 network median of one band: for each output row the 3 source rows are sorted
+/// column-wise into `sorted` (shared by the 3 windows containing each column), then the median
+/// of every window's 3 sorted columns is selected.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn network_band3<T: Sample, const L: usize>(padded: &Padded<T>, c: usize, n: usize, out: &mut [T]) {
+    let stride = padded.stride;
+    let width = stride + L;
+    let mut sorted = vec![T::default(); 3 * width];
+    for (i, line) in out.chunks_exact_mut(n).enumerate() {
+        let Some(rows) = padded.data.get(i * stride..) else {
+            return;
+        };
+        {
+            let (s0, rest) = sorted.split_at_mut(width);
+            let (s1, s2) = rest.split_at_mut(width);
+            for (s, ((d0, d1), d2)) in (0..stride).step_by(L).zip(
+                s0.chunks_exact_mut(L)
+                    .zip(s1.chunks_exact_mut(L))
+                    .zip(s2.chunks_exact_mut(L)),
+            ) {
+                let mut v: [[T; L]; _] = [
+                    load(rows, s),
+                    load(rows, stride + s),
+                    load(rows, 2 * stride + s),
+                ];
+                sort3(&mut v);
+                d0.copy_from_slice(&v[0]);
+                d1.copy_from_slice(&v[1]);
+                d2.copy_from_slice(&v[2]);
+            }
+        }
+        let span = L + 2 * c;
+        for (s, o) in (0..n).step_by(L).zip(line.chunks_mut(L)) {
+            let (Some(r0), Some(r1), Some(r2)) = (
+                sorted.get(s..s + span),
+                sorted.get(width + s..width + s + span),
+                sorted.get(2 * width + s..2 * width + s + span),
+            ) else {
+                return;
+            };
+            let mut v: [[T; L]; _] = [
+                load(r0, 0),
+                load(r1, 0),
+                load(r2, 0),
+                load(r0, c),
+                load(r1, c),
+                load(r2, c),
+                load(r0, 2 * c),
+                load(r1, 2 * c),
+                load(r2, 2 * c),
+            ];
+            median9_sorted_columns(&mut v);
+            let k = o.len();
+            o.copy_from_slice(&v[4][..k]);
+        }
+    }
+}
+
+/// 5×5 network median of one band, two output rows at a time.
+///
+/// Every padded source row is first sorted horizontally: the 5 samples `x, x+c, …, x+4c` of
+/// each output position go, sorted, into 5 planes (9 comparators, once per source row). The
+/// windows of output rows `y` and `y+1` share the sorted runs of source rows `y+1 … y+4`; of
+/// their 20 samples only ranks 7 to 12 can be the median of a window that adds 5 more, and a
+/// network of 51 comparators (Batcher's odd-even merge sort on 4 padded runs of 5, pruned with
+/// the 0-1 principle over all sorted-run inputs to the comparators that can swap and that reach
+/// those ranks) finds them. Each window's median is then rank 12 of those 6 (`m`) and its own
+/// sorted run `r` of 5: `max(m₇, min(m₈, r₄), min(m₉, r₃), …, min(m₁₂, r₀))` (the k-th of two
+/// sorted lists is the largest `min(mᵢ, rⱼ)` with `i + j = k`). 51 + 2·10 comparators for two
+/// outputs instead of 2·85.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn network_band5<T: Sample, const L: usize>(
+    source: &SourceRows<'_, T>,
+    n: usize,
+    out: &mut [T],
+    line: &mut Vec<T>,
+    runs: &mut Vec<T>,
+) {
+    let c = source.g.channels;
+    let source_rows = out.len() / n + 4;
+    // The band is processed in vertical strips of `STRIP_PX` output pixels so that the ring of
+    // sorted runs and the padded row stay in the first-level caches.
+    let strip = STRIP_PX * c;
+    // Sorted runs of the last 6 source rows (a ring): source row `j`, rank `k` at
+    // `(5·(j mod 6) + k)·plane`, with slack for whole-lane reads.
+    let plane = strip + L;
+    let row = 5 * plane;
+    // Every slot is written before it is read; only a new buffer needs initializing.
+    if runs.len() != 6 * row + L {
+        runs.clear();
+        runs.resize(6 * row + L, T::default());
+    }
+    // One padded strip of a source row at a time (its halo included), with slack for
+    // whole-lane reads; the slack only feeds lanes that are never stored.
+    if line.len() != strip + 4 * c + L {
+        line.clear();
+        line.resize(strip + 4 * c + L, source.constant);
+    }
+    for x0 in (0..n).step_by(strip) {
+        let width = strip.min(n - x0);
+        let padded_len = width + 4 * c;
+        let mut sorted_rows = 0;
+        for (pair, rows) in out.chunks_mut(2 * n).enumerate() {
+            let y = 2 * pair;
+            while sorted_rows < (y + 6).min(source_rows) {
+                let slot = (sorted_rows % 6) * row;
+                if let (Some(padded), Some(dst)) =
+                    (line.get_mut(..padded_len), runs.get_mut(slot..slot + row))
+                {
+                    source.pad(sorted_rows, x0 / c, padded);
+                    sort_runs5::<T, L>(line, c, width, dst, plane);
+                }
+                sorted_rows += 1;
+            }
+            let offsets: [usize; 6] = std::array::from_fn(|j| ((y + j) % 6) * row);
+            let (first, second) = rows.split_at_mut(n.min(rows.len()));
+            let first = first.get_mut(x0..x0 + width).unwrap_or_default();
+            let second = second.get_mut(x0..x0 + width).unwrap_or_default();
+            median_rows5::<T, L>(runs, offsets, plane, first, second);
+        }
+    }
+}
+
+/// Output pixels per vertical strip of the 5×5 network median.
+const STRIP_PX: usize = 512;
+
+/// The source rows a band reads, padded one strip at a time.
+struct SourceRows<'a, T> {
+    src: &'a [T],
+    g: &'a Geometry,
+    /// First output row of the band.
+    y0: usize,
+    constant: T,
+}
+
+impl<T: Sample> SourceRows<'_, T> {
+    /// Pads the `j`-th source row of the band (image row `y0 + j − ksize/2`, through the row
+    /// border table) into `dst`, from extended column `start` (pixels) on.
+    #[inline]
+    fn pad(&self, j: usize, start: usize, dst: &mut [T]) {
+        let n = self.g.width * self.g.channels;
+        match self
+            .g
+            .rows
+            .source(self.y0 + j)
+            .and_then(|r| self.src.get(r * n..(r + 1) * n))
+        {
+            Some(row) => self.g.columns.pad_range_with(
+                row,
+                self.g.channels,
+                start,
+                self.constant,
+                dst,
+                |v| v,
+            ),
+            None => dst.fill(self.constant),
+        }
+    }
+}
+
+/// Sorts the 5-sample horizontal runs (`c` apart) starting at each of the first `n` samples of
+/// `row` into the 5 planes of `dst` (`plane` apart, smallest first).
+#[inline(always)]
+fn sort_runs5<T: Sample, const L: usize>(
+    row: &[T],
+    c: usize,
+    n: usize,
+    dst: &mut [T],
+    plane: usize,
+) {
+    for s in (0..n).step_by(L) {
+        let mut v: [[T; L]; 5] = [
+            load(row, s),
+            load(row, s + c),
+            load(row, s + 2 * c),
+            load(row, s + 3 * c),
+            load(row, s + 4 * c),
+        ];
+        sort5(&mut v);
+        for (k, lane) in v.iter().enumerate() {
+            if let Some(d) = dst.get_mut(k * plane + s..k * plane + s + L) {
+                d.copy_from_slice(lane);
+            }
+        }
+    }
+}
+
+/// The 5×5 medians of output rows `y` (`first`) and `y + 1` (`second`, empty for the last row
+/// of an odd band) from the sorted runs of source rows `y … y + 5`, at `offsets` in `runs`.
+#[inline(always)]
+fn median_rows5<T: Sample, const L: usize>(
+    runs: &[T],
+    offsets: [usize; 6],
+    plane: usize,
+    first: &mut [T],
+    second: &mut [T],
+) {
+    let n = first.len();
+    for s in (0..n).step_by(L) {
+        let at = |j: usize, k: usize| load::<T, L>(runs, offsets[j] + k * plane + s);
+        let mut v: [[T; L]; 20] = [
+            at(1, 0),
+            at(1, 1),
+            at(1, 2),
+            at(1, 3),
+            at(1, 4),
+            at(2, 0),
+            at(2, 1),
+            at(2, 2),
+            at(2, 3),
+            at(2, 4),
+            at(3, 0),
+            at(3, 1),
+            at(3, 2),
+            at(3, 3),
+            at(3, 4),
+            at(4, 0),
+            at(4, 1),
+            at(4, 2),
+            at(4, 3),
+            at(4, 4),
+        ];
+        ranks_7_to_12_of_four_runs(&mut v);
+        let m = [v[8], v[5], v[9], v[12], v[13], v[14]];
+        let k = (n - s).min(L);
+        let own = [at(0, 0), at(0, 1), at(0, 2), at(0, 3), at(0, 4)];
+        if let Some(d) = first.get_mut(s..s + k) {
+            d.copy_from_slice(&rank12_of_six_and_run(&m, &own)[..k]);
+        }
+        if let Some(d) = second.get_mut(s..s + k) {
+            let own = [at(5, 0), at(5, 1), at(5, 2), at(5, 3), at(5, 4)];
+            d.copy_from_slice(&rank12_of_six_and_run(&m, &own)[..k]);
+        }
+    }
+}
+
+/// Ranks 7 to 12 of 20 lanes made of 4 sorted runs of 5 (lane `5·run + rank`), left in lanes
+/// 8, 5, 9, 12, 13 and 14 (in that order; the network relabels instead of swapping wires).
+#[inline(always)]
+fn ranks_7_to_12_of_four_runs<T: Sample, const L: usize>(v: &mut [[T; L]; 20]) {
+    network!(v;
+        0 5, 1 6, 2 7, 3 8, 4 9, 10 15, 11 16, 12 17, 13 18, 14 19, 4 5, 14 15, 2 4, 3 6, 7 5,
+        12 14, 13 16, 17 15, 1 2, 3 4, 6 7, 8 5, 11 12, 13 14, 16 17, 18 15, 0 10, 1 11, 2 12,
+        3 13, 4 14, 6 16, 7 17, 8 18, 5 15, 9 19, 5 10, 9 11, 4 5, 6 9, 7 12, 8 13, 14 10, 16 11,
+        7 5, 8 9, 12 14, 13 16, 8 5, 9 12, 13 14,
+    );
+}
+
+/// Rank 12 (the median of 25) of the union of `m` (ranks 7 to 12 of 20 samples, sorted) and a
+/// sorted run `r` of 5 more.
+#[inline(always)]
+fn rank12_of_six_and_run<T: Sample, const L: usize>(m: &[[T; L]; 6], r: &[[T; L]; 5]) -> [T; L] {
+    let a = lane_max(m[0], lane_min(m[1], r[4]));
+    let b = lane_max(lane_min(m[2], r[3]), lane_min(m[3], r[2]));
+    let d = lane_max(lane_min(m[4], r[1]), lane_min(m[5], r[0]));
+    lane_max(lane_max(a, b), d)
 }
 
 /// Perreault & Hébert constant-time median of one band of a u8 image, channel by channel.
