@@ -15,15 +15,21 @@
 //!   shifted slices" loops, unrolled for kernels of up to 15 taps, which LLVM vectorizes with
 //!   SSE2 alone (no `-C target-cpu`).
 //! - u8 images with a smoothing kernel (odd, symmetric, non-negative, summing to 1, at most
-//!   [`MAX_FIXED_POINT_TAPS`] taps) use 16-bit fixed-point weights in 16-bit lanes: samples
-//!   are stored as `256·v`, a product is `⌊x·w / 2¹⁶⌋` (`pmulhuw`), the horizontal result keeps
-//!   8 fractional bits, and symmetric taps are averaged (`pavgw`) before one multiply by twice
-//!   their weight. A bias of half a unit per product centres the truncation error. The result
-//!   is within `0.5 + (ksize_x + ksize_y + 2)/512` gray levels of the exact blur, so constant
-//!   images stay constant. OpenCV instead rounds u8 weights to 8 bits, so the two agree within
-//!   one level except, for large kernels on noisy data, a few pixels in 10⁴ (measured:
-//!   σ = 12 on uniform noise, up to 0.1 % of pixels differ by 2, OpenCV being 2.4 levels off the
-//!   exact value there while this path stays within 0.55).
+//!   [`MAX_FIXED_POINT_TAPS`] taps) use 16-bit fixed-point weights in 16-bit lanes, and run the
+//!   column pass first: each output row is the column pass over the source rows it reads,
+//!   straight from the image (a row outside it is read through the border table; no padded copy
+//!   of the source), into one u16 row that is then padded in place and filtered along the row
+//!   into the output. Samples are taken as `256·v`, a product is `⌊x·w / 2¹⁶⌋` (`pmulhuw`),
+//!   the column result keeps 8 fractional bits, and symmetric taps are averaged (`pavgw`)
+//!   before one multiply by twice their weight. A bias of half a unit per product centres the
+//!   truncation error. The result is within `0.5 + (ksize_x + ksize_y + 2)/512` gray levels of
+//!   the exact blur, so constant images stay constant. On CPUs with AVX2 both passes run as
+//!   intrinsics (`fixed_avx2`; LLVM vectorizes a portable high multiply in 32-bit lanes, at
+//!   twice the cost), bit-identical to the portable kernels that handle the row tails and
+//!   other CPUs. OpenCV instead rounds u8 weights to 8 bits, so the two agree within one level
+//!   except, for large kernels on noisy data, a few pixels in 10⁴ (measured: σ = 12 on uniform
+//!   noise, up to 0.1 % of pixels differ by 2, OpenCV being 2.4 levels off the exact value
+//!   there while this path stays within 0.55).
 //! - Other u8 kernels, and u16 and f32 images, accumulate in f32; integer outputs are rounded to
 //!   nearest (ties to even) and saturated.
 
@@ -343,7 +349,7 @@ pub fn separable_filter(
         PixelData::U8(src) => {
             let constant = u8::from_f64(border_value);
             let dst = match FixedU8::new(row_kernel, column_kernel, channels) {
-                Some(fixed) => filter_bands(&fixed, src, &geometry, constant),
+                Some(fixed) => fixed_u8_bands(&fixed, src, &geometry, constant),
                 None => filter_bands(
                     &FloatPasses::new(row_kernel, column_kernel, channels),
                     src,
@@ -740,33 +746,28 @@ fn float_row<O: Sample>(src: &[f32], offsets: &[usize], weights: &[f32], out: &m
     weighted_sum(&mac, src, offsets, weights, out);
 }
 
-/// One row of a u8 fixed-point pass ([`symmetric_sum`]), compiled for the CPU's vector
-/// extensions (integer arithmetic: identical results).
-#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
-fn fixed_row(src: &[u16], offsets: &[usize], kernel: &SymmetricQ16, bias: u16, out: &mut [u16]) {
-    symmetric_sum(src, offsets, kernel, bias, out, |a| a);
-}
-
-/// [`fixed_row`] with the final rounding to u8.
+/// The row pass of the u8 fixed-point filter ([`symmetric_sum`]) with the final rounding to u8,
+/// compiled for the CPU's vector extensions (integer arithmetic: identical results).
 #[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
 fn fixed_row_u8(src: &[u16], offsets: &[usize], kernel: &SymmetricQ16, bias: u16, out: &mut [u8]) {
     symmetric_sum(src, offsets, kernel, bias, out, |a| (a >> 8) as u8);
 }
 
-/// u8 fixed point: 16-bit weights, horizontal results with 8 fractional bits in u16.
+/// u8 fixed point: 16-bit weights, column-pass results with 8 fractional bits in u16.
 ///
 /// Kernels are symmetric, so each pair of taps at equal distance from the centre is averaged
-/// first (`pavgw`) and multiplied once by twice their weight. Horizontally that is exact (the
-/// samples are multiples of 256, so their sum is even); vertically the average rounds up by at
-/// most ½ unit. Each product truncates once; the bias, half a unit per product, centres the
-/// error.
+/// first (`pavgw`) and multiplied once by twice their weight. In the column pass (first) that
+/// is exact (the samples are multiples of 256, so their sum is even); in the row pass the
+/// average rounds up by at most ½ unit. Each product truncates once; the bias, half a unit per
+/// product, centres the error.
 struct FixedU8 {
     row: SymmetricQ16,
     column: SymmetricQ16,
     row_offsets: Vec<usize>,
-    row_bias: u16,
-    /// Includes ½ for rounding the final shift by 8.
-    column_bias: u16,
+    /// The column pass's bias (it runs first).
+    column_bias_first: u16,
+    /// The row pass's bias (it runs second): includes ½ for rounding the final shift by 8.
+    row_bias_second: u16,
 }
 
 /// A symmetric kernel of `2·pairs.len() + 1` taps in 16-bit fixed point.
@@ -805,8 +806,8 @@ impl FixedU8 {
         let column = SymmetricQ16::new(column)?;
         Some(FixedU8 {
             row_offsets: (0..2 * row.pairs.len() + 1).map(|i| i * channels).collect(),
-            row_bias: row.bias(),
-            column_bias: column.bias().saturating_add(128),
+            column_bias_first: column.bias(),
+            row_bias_second: row.bias().saturating_add(128),
             row,
             column,
         })
@@ -819,12 +820,13 @@ fn mul_high(a: u16, b: u16) -> u16 {
     ((u32::from(a) * u32::from(b)) >> 16) as u16
 }
 
-/// `⌈(a + b) / 2⌉`, which LLVM lowers to `pavgw`.
+/// `⌈(a + b) / 2⌉` in 16-bit operations only. (The form through u32 lowers to `pavgw`, but its
+/// result is then a truncated u32, and LLVM multiplies that in 32-bit lanes instead of with
+/// `pmulhuw`.)
 #[inline(always)]
 fn average(a: u16, b: u16) -> u16 {
-    ((u32::from(a) + u32::from(b) + 1) >> 1) as u16
+    (a | b) - ((a ^ b) >> 1)
 }
-
 /// `out[i] = finish(bias + ⌊src[offsets[h] + i] · w_c / 2¹⁶⌋ +
 /// Σ_j ⌊avg(src[offsets[j] + i], src[offsets[2h − j] + i]) · 2w_j / 2¹⁶⌋)` for a kernel of
 /// `2h + 1` taps. Sums stay below 2¹⁶ (module docs), so the wrapping adds are exact.
@@ -926,25 +928,230 @@ fn symmetric_blocked<O>(
     }
 }
 
-impl Passes for FixedU8 {
-    type Sample = u8;
-    type Mid = u16;
-    type Padded = u16;
-
-    /// The sample in the high byte. Multiplying such values from memory also keeps LLVM from
-    /// folding the shift into the weights, which would cost it `pmulhuw`.
-    fn widen(x: u8) -> u16 {
-        u16::from(x) << 8
+/// The u8 fixed-point filter, vertical pass first: each output row is the column pass over the
+/// `ksize_y` source rows it reads, straight from the image (no padded copy of the source), into
+/// one u16 row padded through the column border table, then the row pass of that row into the
+/// output. Both temporaries stay in L1 cache and every source row is read from cache by the
+/// `ksize_y` output rows that need it.
+fn fixed_u8_bands(fixed: &FixedU8, src: &[u8], geometry: &Geometry, constant: u8) -> Vec<u8> {
+    let mut dst = vec![0u8; src.len()];
+    let Geometry {
+        width,
+        channels,
+        columns,
+        rows,
+    } = geometry;
+    let (width, channels) = (*width, *channels);
+    let n = width * channels;
+    if n == 0 || src.is_empty() {
+        return dst;
     }
+    let taps_y = rows.before() + 1 + rows.after();
+    let before_x = columns.before();
+    let padded_len = columns.padded_len() * channels;
+    let wide_constant = u16::from(constant) << 8;
+    let constant_row = vec![constant; n];
+    dst.par_chunks_mut(BAND_ROWS * n)
+        .enumerate()
+        .for_each(|(band, out)| {
+            let y0 = band * BAND_ROWS;
+            let mut padded = vec![wide_constant; padded_len];
+            let mut taps: Vec<&[u8]> = vec![&[]; taps_y];
+            for (i, line) in out.chunks_exact_mut(n).enumerate() {
+                // Output row y reads extended rows y .. y + taps_y − 1.
+                for (j, tap) in taps.iter_mut().enumerate() {
+                    *tap = rows
+                        .source(y0 + i + j)
+                        .and_then(|r| src.get(r * n..(r + 1) * n))
+                        .unwrap_or(&constant_row);
+                }
+                let Some(inside) = padded.get_mut(before_x * channels..before_x * channels + n)
+                else {
+                    return;
+                };
+                column_pass_u8(&taps, &fixed.column, fixed.column_bias_first, inside);
+                pad_in_place(columns, channels, wide_constant, &mut padded);
+                row_pass_u8(
+                    &padded,
+                    &fixed.row_offsets,
+                    &fixed.row,
+                    fixed.row_bias_second,
+                    line,
+                );
+            }
+        });
+    dst
+}
 
-    /// The filtered row with 8 fractional bits (at most 255·256 + 4).
-    fn horizontal(&self, padded: &[u16], out: &mut [u16]) {
-        fixed_row(padded, &self.row_offsets, &self.row, self.row_bias, out);
+/// The column pass of [`fixed_u8_bands`]: AVX2 intrinsics for whole vectors where the CPU has
+/// them (bit-identical, see `fixed_avx2`), the portable kernel for the rest.
+fn column_pass_u8(rows: &[&[u8]], kernel: &SymmetricQ16, bias: u16, out: &mut [u16]) {
+    #[cfg(target_arch = "x86_64")]
+    let done =
+        super::fixed_avx2::column_u8(rows, &kernel.pairs, kernel.centre, bias, out).unwrap_or(0);
+    #[cfg(not(target_arch = "x86_64"))]
+    let done = 0;
+    if let Some(rest) = out.get_mut(done..)
+        && !rest.is_empty()
+    {
+        fixed_column_u8(rows, done, kernel, bias, 256, rest);
     }
+}
 
-    /// The filtered column, rounded to u8.
-    fn vertical(&self, rows: &[u16], offsets: &[usize], out: &mut [u8]) {
-        fixed_row_u8(rows, offsets, &self.column, self.column_bias, out);
+/// The row pass of [`fixed_u8_bands`], AVX2 where available as [`column_pass_u8`].
+fn row_pass_u8(
+    padded: &[u16],
+    offsets: &[usize],
+    kernel: &SymmetricQ16,
+    bias: u16,
+    out: &mut [u8],
+) {
+    #[cfg(target_arch = "x86_64")]
+    let done =
+        super::fixed_avx2::row_to_u8(padded, offsets, &kernel.pairs, kernel.centre, bias, out)
+            .unwrap_or(0);
+    #[cfg(not(target_arch = "x86_64"))]
+    let done = 0;
+    if let (Some(src), Some(rest)) = (padded.get(done..), out.get_mut(done..))
+        && !rest.is_empty()
+    {
+        fixed_row_u8(src, offsets, kernel, bias, rest);
+    }
+}
+
+/// Fills the border positions of an extended row whose inside is already written.
+fn pad_in_place(columns: &BorderTable, channels: usize, constant: u16, padded: &mut [u16]) {
+    let before = columns.before();
+    let inside_end = before + columns.len();
+    let extended = padded.len() / channels;
+    for k in (0..before).chain(inside_end..extended) {
+        let dst = k * channels;
+        match columns.source(k) {
+            Some(s) => {
+                let from = (before + s) * channels;
+                padded.copy_within(from..from + channels, dst);
+            }
+            None => {
+                if let Some(d) = padded.get_mut(dst..dst + channels) {
+                    d.fill(constant);
+                }
+            }
+        }
+    }
+}
+
+/// The column pass of the u8 fixed-point filter over `rows` (the `2h + 1` source rows, top
+/// first), from sample `start` of each row on, straight from u8: each sample is taken as
+/// `256·v` (see [`FixedU8`]).
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn fixed_column_u8(
+    rows: &[&[u8]],
+    start: usize,
+    kernel: &SymmetricQ16,
+    bias: u16,
+    unit: u16,
+    out: &mut [u16],
+) {
+    let s = Scale(unit);
+    match kernel.pairs.len() {
+        1 => column_u8_unrolled::<1>(rows, start, kernel, bias, s, out),
+        2 => column_u8_unrolled::<2>(rows, start, kernel, bias, s, out),
+        3 => column_u8_unrolled::<3>(rows, start, kernel, bias, s, out),
+        4 => column_u8_unrolled::<4>(rows, start, kernel, bias, s, out),
+        5 => column_u8_unrolled::<5>(rows, start, kernel, bias, s, out),
+        6 => column_u8_unrolled::<6>(rows, start, kernel, bias, s, out),
+        7 => column_u8_unrolled::<7>(rows, start, kernel, bias, s, out),
+        _ => column_u8_blocked(rows, start, kernel, bias, s, out),
+    }
+}
+
+/// Widens u8 samples to `256·v` by multiplying with `unit` (256), a run-time value: with a
+/// constant shift LLVM folds `256·v · w / 2¹⁶` into `v · w / 2⁸`, which needs 32-bit lanes.
+#[derive(Clone, Copy)]
+struct Scale(u16);
+
+impl Scale {
+    /// `256·v`.
+    #[inline(always)]
+    fn one(self, v: u8) -> u16 {
+        u16::from(v).wrapping_mul(self.0)
+    }
+    /// `⌈(256·a + 256·b) / 2⌉ = 128·(a + b)`, exactly.
+    #[inline(always)]
+    fn pair(self, a: u8, b: u8) -> u16 {
+        (u16::from(a) + u16::from(b)).wrapping_mul(self.0 >> 1)
+    }
+}
+
+#[inline(always)]
+fn column_u8_unrolled<const H: usize>(
+    rows: &[&[u8]],
+    start: usize,
+    kernel: &SymmetricQ16,
+    bias: u16,
+    scale: Scale,
+    out: &mut [u16],
+) {
+    let Ok(pairs) = <[u16; H]>::try_from(kernel.pairs.as_slice()) else {
+        return;
+    };
+    let n = out.len();
+    let tap = |k: usize| {
+        rows.get(k)
+            .and_then(|r| r.get(start..start + n))
+            .unwrap_or(&[])
+    };
+    let left: [&[u8]; H] = std::array::from_fn(tap);
+    let right: [&[u8]; H] = std::array::from_fn(|j| tap(2 * H - j));
+    let centre = tap(H);
+    let n = left
+        .iter()
+        .chain(&right)
+        .fold(n.min(centre.len()), |n, tap| n.min(tap.len()));
+    for (i, o) in out.iter_mut().enumerate().take(n) {
+        let mut acc = bias.wrapping_add(mul_high(scale.one(centre[i]), kernel.centre));
+        for j in 0..H {
+            let pair = scale.pair(left[j][i], right[j][i]);
+            acc = acc.wrapping_add(mul_high(pair, pairs[j]));
+        }
+        *o = acc;
+    }
+}
+
+#[inline(always)]
+fn column_u8_blocked(
+    rows: &[&[u8]],
+    start: usize,
+    kernel: &SymmetricQ16,
+    bias: u16,
+    scale: Scale,
+    out: &mut [u16],
+) {
+    const BLOCK: usize = 64;
+    let taps = 2 * kernel.pairs.len() + 1;
+    let h = kernel.pairs.len();
+    let tap = |k: usize, from: usize, len: usize| {
+        rows.get(k)
+            .and_then(|r| r.get(start + from..start + from + len))
+    };
+    for (block, out) in out.chunks_mut(BLOCK).enumerate() {
+        let start = block * BLOCK;
+        let len = out.len();
+        let mut acc = [bias; BLOCK];
+        let acc = &mut acc[..len];
+        if let Some(c) = tap(h, start, len) {
+            for (a, &x) in acc.iter_mut().zip(c) {
+                *a = a.wrapping_add(mul_high(scale.one(x), kernel.centre));
+            }
+        }
+        for (j, &w) in kernel.pairs.iter().enumerate() {
+            if let (Some(l), Some(r)) = (tap(j, start, len), tap(taps - 1 - j, start, len)) {
+                for ((a, &x), &y) in acc.iter_mut().zip(l).zip(r) {
+                    *a = a.wrapping_add(mul_high(scale.pair(x, y), w));
+                }
+            }
+        }
+        out.copy_from_slice(acc);
     }
 }
 
@@ -955,6 +1162,53 @@ mod tests {
     use crate::filter::test_support::{MODES, random_u8, randoms};
     use ocellus_engine::value::Channels;
     use proptest::prelude::*;
+
+    /// The AVX2 kernels and the portable ones agree bit for bit, for every kernel length the
+    /// intrinsics take and row lengths around the vector width.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_kernels_equal_portable_ones() {
+        use crate::filter::fixed_avx2;
+        assert!(
+            !std::arch::is_x86_feature_detected!("avx2") || fixed_avx2::available(),
+            "dispatch disagrees with the CPU"
+        );
+        for (case, ksize) in [3usize, 5, 7, 9, 11, 13, 15].into_iter().enumerate() {
+            let sigma = 0.4 + 0.35 * case as f64;
+            let Some(kernel) = SymmetricQ16::new(&gaussian_kernel(ksize, sigma)) else {
+                panic!("ksize {ksize}: no fixed-point kernel");
+            };
+            for n in [1usize, 15, 16, 17, 31, 32, 33, 100] {
+                let seed = (case * 1000 + n) as u64;
+                let rows: Vec<Vec<u8>> = (0..ksize)
+                    .map(|r| {
+                        randoms(seed + r as u64, n)
+                            .iter()
+                            .map(|&x| (x * 256.0) as u8)
+                            .collect()
+                    })
+                    .collect();
+                let views: Vec<&[u8]> = rows.iter().map(Vec::as_slice).collect();
+                let mut fast = vec![0u16; n];
+                column_pass_u8(&views, &kernel, kernel.bias(), &mut fast);
+                let mut portable = vec![0u16; n];
+                fixed_column_u8(&views, 0, &kernel, kernel.bias(), 256, &mut portable);
+                assert_eq!(fast, portable, "column ksize {ksize} n {n}");
+                // Row pass inputs: column results (at most 255·256 + a few units).
+                let padded: Vec<u16> = randoms(seed, n + ksize - 1)
+                    .iter()
+                    .map(|&x| (x * (255.0 * 256.0 + 4.0)) as u16)
+                    .collect();
+                let offsets: Vec<usize> = (0..ksize).collect();
+                let bias = kernel.bias() + 128;
+                let mut fast = vec![0u8; n];
+                row_pass_u8(&padded, &offsets, &kernel, bias, &mut fast);
+                let mut portable = vec![0u8; n];
+                fixed_row_u8(&padded, &offsets, &kernel, bias, &mut portable);
+                assert_eq!(fast, portable, "row ksize {ksize} n {n}");
+            }
+        }
+    }
 
     fn to_f32(image: &Image) -> Image {
         let data: Vec<f32> = match image.data() {

@@ -9,6 +9,8 @@ pub mod convert;
 pub mod convolve;
 pub mod derivatives;
 pub mod distance;
+#[cfg(target_arch = "x86_64")]
+mod fixed_avx2;
 pub mod flow;
 pub mod frequency;
 pub mod gaussian;

@@ -1,0 +1,274 @@
+//! AVX2 kernels of the u8 fixed-point smoothing filter (see [`super::gaussian`]), written with
+//! intrinsics because the auto-vectorizer cannot express the one operation they are built on:
+//! the high half of a 16-bit product (`pmulhuw`). Written in portable Rust, `⌊a·b / 2¹⁶⌋`
+//! is vectorized in 32-bit lanes (zero-extend, multiply, pack, permute), which costs twice the
+//! instructions. The arithmetic here is exactly that of the portable kernels in `gaussian.rs`
+//! (same products, same truncations, same order of wrapping 16-bit additions), so results are
+//! bit-identical with or without AVX2; tests compare the two.
+//!
+//! The high multiply itself is one `vpmulhuw` in inline assembly: LLVM rewrites the
+//! `_mm256_mulhi_epu16` intrinsic into generic IR and, when an operand is an average or a
+//! shifted value, lowers it back in 32-bit lanes again.
+//!
+//! Unsafe code is confined to this module: the calls into `#[target_feature(enable = "avx2")]`
+//! functions, made only after `is_x86_feature_detected!("avx2")`, unaligned loads and stores
+//! through pointers to fixed-size arrays borrowed from slices, and that one instruction.
+#![allow(unsafe_code)] // AVX2 intrinsics: every unsafe block says why it is sound
+
+use std::arch::x86_64::{
+    __m128i, __m256i, _mm_loadu_si128, _mm256_add_epi16, _mm256_cvtepu8_epi16, _mm256_loadu_si256,
+    _mm256_packus_epi16, _mm256_permute4x64_epi64, _mm256_set1_epi16, _mm256_slli_epi16,
+    _mm256_srli_epi16, _mm256_storeu_si256,
+};
+
+/// Lanes per vector (16-bit).
+const LANES: usize = 16;
+
+/// Whether the running CPU has AVX2 (cached by the standard library).
+pub(crate) fn available() -> bool {
+    std::arch::is_x86_feature_detected!("avx2")
+}
+
+/// Column pass from the `2h + 1` u8 rows `rows` (top first, `h = pairs.len()`):
+/// `out[i] = bias + ⌊256·c[i] · centre / 2¹⁶⌋ + Σ_j ⌊128·(rows[j][i] + rows[2h−j][i]) ·
+/// pairs[j] / 2¹⁶⌋` for the whole vectors of `out`; returns how many samples it wrote (a
+/// multiple of 16; the caller finishes the tail). `None` without AVX2.
+pub(crate) fn column_u8(
+    rows: &[&[u8]],
+    pairs: &[u16],
+    centre_weight: u16,
+    bias: u16,
+    out: &mut [u16],
+) -> Option<usize> {
+    if !available() {
+        return None;
+    }
+    // SAFETY: AVX2 is available (checked above).
+    Some(unsafe { column_u8_avx2(rows, pairs, centre_weight, bias, out) })
+}
+
+#[target_feature(enable = "avx2")]
+fn column_u8_avx2(
+    rows: &[&[u8]],
+    pairs: &[u16],
+    centre_weight: u16,
+    bias: u16,
+    out: &mut [u16],
+) -> usize {
+    match pairs.len() {
+        1 => column_u8_taps::<1>(rows, pairs, centre_weight, bias, out),
+        2 => column_u8_taps::<2>(rows, pairs, centre_weight, bias, out),
+        3 => column_u8_taps::<3>(rows, pairs, centre_weight, bias, out),
+        4 => column_u8_taps::<4>(rows, pairs, centre_weight, bias, out),
+        5 => column_u8_taps::<5>(rows, pairs, centre_weight, bias, out),
+        6 => column_u8_taps::<6>(rows, pairs, centre_weight, bias, out),
+        7 => column_u8_taps::<7>(rows, pairs, centre_weight, bias, out),
+        _ => 0,
+    }
+}
+
+/// [`column_u8_avx2`] for `2H + 1` taps.
+#[target_feature(enable = "avx2")]
+fn column_u8_taps<const H: usize>(
+    rows: &[&[u8]],
+    pairs: &[u16],
+    centre_weight: u16,
+    bias: u16,
+    out: &mut [u16],
+) -> usize {
+    let (Ok(pairs), true) = (<[u16; H]>::try_from(pairs), rows.len() == 2 * H + 1) else {
+        return 0;
+    };
+    let n = rows.iter().fold(out.len(), |n, row| n.min(row.len()));
+    let whole = n - n % LANES;
+    let Some(centre) = rows.get(H).and_then(|r| r.get(..whole)) else {
+        return 0;
+    };
+    let tap = |k: usize| rows.get(k).and_then(|r| r.get(..whole)).unwrap_or(&[]);
+    let left: [&[u8]; H] = std::array::from_fn(tap);
+    let right: [&[u8]; H] = std::array::from_fn(|j| tap(2 * H - j));
+    let bias = _mm256_set1_epi16(bias as i16);
+    let centre_weight = _mm256_set1_epi16(centre_weight as i16);
+    let weights: [__m256i; H] = std::array::from_fn(|j| _mm256_set1_epi16(pairs[j] as i16));
+    for (k, o) in out[..whole].chunks_exact_mut(LANES).enumerate() {
+        let i = k * LANES;
+        let c = _mm256_slli_epi16::<8>(widen(centre, i));
+        let mut acc = _mm256_add_epi16(bias, mulhi(c, centre_weight));
+        for j in 0..H {
+            let sum = _mm256_add_epi16(widen(left[j], i), widen(right[j], i));
+            acc = _mm256_add_epi16(acc, mulhi(_mm256_slli_epi16::<7>(sum), weights[j]));
+        }
+        store16(o, acc);
+    }
+    whole
+}
+
+/// Row pass to u8: `out[i] = (bias + ⌊p_c · centre / 2¹⁶⌋ + Σ_j ⌊avg(p_l, p_r) · pairs[j] /
+/// 2¹⁶⌋) >> 8` where `p_k = padded[offsets[k] + i]` and `avg` rounds up; whole vectors of 32
+/// outputs only, returns how many it wrote. `None` without AVX2.
+pub(crate) fn row_to_u8(
+    padded: &[u16],
+    offsets: &[usize],
+    pairs: &[u16],
+    centre_weight: u16,
+    bias: u16,
+    out: &mut [u8],
+) -> Option<usize> {
+    if !available() {
+        return None;
+    }
+    // SAFETY: AVX2 is available (checked above).
+    Some(unsafe { row_to_u8_avx2(padded, offsets, pairs, centre_weight, bias, out) })
+}
+
+#[target_feature(enable = "avx2")]
+fn row_to_u8_avx2(
+    padded: &[u16],
+    offsets: &[usize],
+    pairs: &[u16],
+    centre_weight: u16,
+    bias: u16,
+    out: &mut [u8],
+) -> usize {
+    match pairs.len() {
+        1 => row_to_u8_taps::<1>(padded, offsets, pairs, centre_weight, bias, out),
+        2 => row_to_u8_taps::<2>(padded, offsets, pairs, centre_weight, bias, out),
+        3 => row_to_u8_taps::<3>(padded, offsets, pairs, centre_weight, bias, out),
+        4 => row_to_u8_taps::<4>(padded, offsets, pairs, centre_weight, bias, out),
+        5 => row_to_u8_taps::<5>(padded, offsets, pairs, centre_weight, bias, out),
+        6 => row_to_u8_taps::<6>(padded, offsets, pairs, centre_weight, bias, out),
+        7 => row_to_u8_taps::<7>(padded, offsets, pairs, centre_weight, bias, out),
+        _ => 0,
+    }
+}
+
+/// [`row_to_u8_avx2`] for `2H + 1` taps.
+#[target_feature(enable = "avx2")]
+fn row_to_u8_taps<const H: usize>(
+    padded: &[u16],
+    offsets: &[usize],
+    pairs: &[u16],
+    centre_weight: u16,
+    bias: u16,
+    out: &mut [u8],
+) -> usize {
+    let (Ok(pairs), Some(offsets)) = (<[u16; H]>::try_from(pairs), offsets.get(..2 * H + 1)) else {
+        return 0;
+    };
+    // Every tap reads `offsets[k] + i` for i < n.
+    let reach = offsets.iter().copied().max().unwrap_or(0);
+    let n = out.len().min(padded.len().saturating_sub(reach));
+    let whole = n - n % (2 * LANES);
+    let tap = |k: usize| {
+        offsets
+            .get(k)
+            .and_then(|&o| padded.get(o..o + whole))
+            .unwrap_or(&[])
+    };
+    let left: [&[u16]; H] = std::array::from_fn(tap);
+    let right: [&[u16]; H] = std::array::from_fn(|j| tap(2 * H - j));
+    let centre = tap(H);
+    let bias = _mm256_set1_epi16(bias as i16);
+    let centre_weight = _mm256_set1_epi16(centre_weight as i16);
+    let weights: [__m256i; H] = std::array::from_fn(|j| _mm256_set1_epi16(pairs[j] as i16));
+    let filter = |i: usize| {
+        let mut acc = _mm256_add_epi16(bias, mulhi(load16(centre, i), centre_weight));
+        for j in 0..H {
+            let pair = avg(load16(left[j], i), load16(right[j], i));
+            acc = _mm256_add_epi16(acc, mulhi(pair, weights[j]));
+        }
+        _mm256_srli_epi16::<8>(acc)
+    };
+    for (k, o) in out[..whole].chunks_exact_mut(2 * LANES).enumerate() {
+        let i = k * 2 * LANES;
+        let low = filter(i);
+        let high = filter(i + LANES);
+        // packus interleaves the 128-bit halves; the permute puts the 32 bytes in order.
+        let bytes = _mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_packus_epi16(low, high));
+        store32(o, bytes);
+    }
+    whole
+}
+
+/// `⌈(a + b) / 2⌉` in each unsigned 16-bit lane (`vpavgw`, in assembly for the same reason as
+/// [`mulhi`]).
+#[target_feature(enable = "avx2")]
+fn avg(a: __m256i, b: __m256i) -> __m256i {
+    let out: __m256i;
+    // SAFETY: one register-to-register AVX2 instruction (available: this function requires
+    // it); no memory, stack or flags are touched.
+    unsafe {
+        std::arch::asm!(
+            "vpavgw {out}, {a}, {b}",
+            a = in(ymm_reg) a,
+            b = in(ymm_reg) b,
+            out = lateout(ymm_reg) out,
+            options(pure, nomem, nostack, preserves_flags),
+        );
+    }
+    out
+}
+
+/// `⌊a·b / 2¹⁶⌋` in each unsigned 16-bit lane.
+#[target_feature(enable = "avx2")]
+fn mulhi(a: __m256i, b: __m256i) -> __m256i {
+    let out: __m256i;
+    // SAFETY: one register-to-register AVX2 instruction (available: this function requires
+    // it); no memory, stack or flags are touched.
+    unsafe {
+        std::arch::asm!(
+            "vpmulhuw {out}, {a}, {b}",
+            a = in(ymm_reg) a,
+            b = in(ymm_reg) b,
+            out = lateout(ymm_reg) out,
+            options(pure, nomem, nostack, preserves_flags),
+        );
+    }
+    out
+}
+
+/// 16 u8 samples from `row[i..]`, zero-extended to 16-bit lanes (zeros past the end).
+#[target_feature(enable = "avx2")]
+fn widen(row: &[u8], i: usize) -> __m256i {
+    match row
+        .get(i..i + LANES)
+        .and_then(|s| <&[u8; LANES]>::try_from(s).ok())
+    {
+        // SAFETY: `bytes` is 16 readable bytes; the load has no alignment requirement.
+        Some(bytes) => {
+            _mm256_cvtepu8_epi16(unsafe { _mm_loadu_si128(bytes.as_ptr().cast::<__m128i>()) })
+        }
+        None => _mm256_set1_epi16(0),
+    }
+}
+
+/// 16 u16 samples from `data[i..]` (zeros past the end).
+#[target_feature(enable = "avx2")]
+fn load16(data: &[u16], i: usize) -> __m256i {
+    match data
+        .get(i..i + LANES)
+        .and_then(|s| <&[u16; LANES]>::try_from(s).ok())
+    {
+        // SAFETY: `lanes` is 32 readable bytes; the load has no alignment requirement.
+        Some(lanes) => unsafe { _mm256_loadu_si256(lanes.as_ptr().cast::<__m256i>()) },
+        None => _mm256_set1_epi16(0),
+    }
+}
+
+/// Stores 16 u16 lanes into `out` (nothing unless it holds exactly 16).
+#[target_feature(enable = "avx2")]
+fn store16(out: &mut [u16], v: __m256i) {
+    if let Ok(lanes) = <&mut [u16; LANES]>::try_from(out) {
+        // SAFETY: `lanes` is 32 writable bytes, exclusively borrowed; unaligned store.
+        unsafe { _mm256_storeu_si256(lanes.as_mut_ptr().cast::<__m256i>(), v) }
+    }
+}
+
+/// Stores 32 u8 lanes into `out` (nothing unless it holds exactly 32).
+#[target_feature(enable = "avx2")]
+fn store32(out: &mut [u8], v: __m256i) {
+    if let Ok(bytes) = <&mut [u8; 32]>::try_from(out) {
+        // SAFETY: `bytes` is 32 writable bytes, exclusively borrowed; unaligned store.
+        unsafe { _mm256_storeu_si256(bytes.as_mut_ptr().cast::<__m256i>(), v) }
+    }
+}
