@@ -24,7 +24,7 @@
 //!   before one multiply by twice their weight. A bias of half a unit per product centres the
 //!   truncation error. The result is within `0.5 + (ksize_x + ksize_y + 2)/512` gray levels of
 //!   the exact blur, so constant images stay constant. On CPUs with AVX2 both passes run as
-//!   intrinsics (`fixed_avx2`; LLVM vectorizes a portable high multiply in 32-bit lanes, at
+//!   intrinsics (`avx2`; LLVM vectorizes a portable high multiply in 32-bit lanes, at
 //!   twice the cost), bit-identical to the portable kernels that handle the row tails and
 //!   other CPUs. OpenCV instead rounds u8 weights to 8 bits, so the two agree within one level
 //!   except, for large kernels on noisy data, a few pixels in 10⁴ (measured: σ = 12 on uniform
@@ -984,11 +984,10 @@ fn fixed_u8_bands(fixed: &FixedU8, src: &[u8], geometry: &Geometry, constant: u8
 }
 
 /// The column pass of [`fixed_u8_bands`]: AVX2 intrinsics for whole vectors where the CPU has
-/// them (bit-identical, see `fixed_avx2`), the portable kernel for the rest.
+/// them (bit-identical, see `avx2`), the portable kernel for the rest.
 fn column_pass_u8(rows: &[&[u8]], kernel: &SymmetricQ16, bias: u16, out: &mut [u16]) {
     #[cfg(target_arch = "x86_64")]
-    let done =
-        super::fixed_avx2::column_u8(rows, &kernel.pairs, kernel.centre, bias, out).unwrap_or(0);
+    let done = super::avx2::column_u8(rows, &kernel.pairs, kernel.centre, bias, out).unwrap_or(0);
     #[cfg(not(target_arch = "x86_64"))]
     let done = 0;
     if let Some(rest) = out.get_mut(done..)
@@ -1007,9 +1006,8 @@ fn row_pass_u8(
     out: &mut [u8],
 ) {
     #[cfg(target_arch = "x86_64")]
-    let done =
-        super::fixed_avx2::row_to_u8(padded, offsets, &kernel.pairs, kernel.centre, bias, out)
-            .unwrap_or(0);
+    let done = super::avx2::row_to_u8(padded, offsets, &kernel.pairs, kernel.centre, bias, out)
+        .unwrap_or(0);
     #[cfg(not(target_arch = "x86_64"))]
     let done = 0;
     if let (Some(src), Some(rest)) = (padded.get(done..), out.get_mut(done..))
@@ -1168,7 +1166,7 @@ mod tests {
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn avx2_kernels_equal_portable_ones() {
-        use crate::filter::fixed_avx2;
+        use crate::filter::avx2 as fixed_avx2;
         assert!(
             !std::arch::is_x86_feature_detected!("avx2") || fixed_avx2::available(),
             "dispatch disagrees with the CPU"

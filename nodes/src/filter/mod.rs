@@ -1,5 +1,7 @@
 //! Image filters: colour conversion, linear and non-linear filtering.
 
+#[cfg(target_arch = "x86_64")]
+mod avx2;
 pub mod bilateral;
 pub mod border;
 pub mod box_filter;
@@ -9,8 +11,6 @@ pub mod convert;
 pub mod convolve;
 pub mod derivatives;
 pub mod distance;
-#[cfg(target_arch = "x86_64")]
-mod fixed_avx2;
 pub mod flow;
 pub mod frequency;
 pub mod gaussian;

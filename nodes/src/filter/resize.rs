@@ -720,6 +720,12 @@ fn area_blocks(data: &PixelData, g: &Geometry, kx: usize, ky: usize) -> PixelDat
 trait Integer: Sample {
     fn widen(self) -> u32;
     fn narrow(v: u32) -> Self;
+    /// The 2×2 means of a leading part of a row pair with SIMD intrinsics where there are some
+    /// for this type and channel count (bit-identical to [`half_row`]); returns the samples
+    /// written.
+    fn half_simd(_channels: usize, _top: &[Self], _bottom: &[Self], _out: &mut [Self]) -> usize {
+        0
+    }
 }
 
 impl Integer for u8 {
@@ -730,6 +736,10 @@ impl Integer for u8 {
     #[inline]
     fn narrow(v: u32) -> Self {
         v as u8
+    }
+    #[cfg(target_arch = "x86_64")]
+    fn half_simd(channels: usize, top: &[u8], bottom: &[u8], out: &mut [u8]) -> usize {
+        super::avx2::half_u8(channels, top, bottom, out).unwrap_or(0)
     }
 }
 
@@ -755,7 +765,13 @@ fn half_u8_like<T: Integer>(src: &[T], g: &Geometry) -> Vec<T> {
                 let sy = 2 * (band * BAND_ROWS + i);
                 let r0 = &src[sy * sn..sy * sn + 2 * n];
                 let r1 = &src[(sy + 1) * sn..(sy + 1) * sn + 2 * n];
-                half_row_any(c, r0, r1, line);
+                let done = T::half_simd(c, r0, r1, line);
+                if let (Some(r0), Some(r1), Some(rest)) =
+                    (r0.get(2 * done..), r1.get(2 * done..), line.get_mut(done..))
+                    && !rest.is_empty()
+                {
+                    half_row_any(c, r0, r1, rest);
+                }
             }
         });
     dst
@@ -910,6 +926,36 @@ mod tests {
     use crate::filter::test_support::{random_u8, randoms};
     use ocellus_engine::value::Channels;
     use proptest::prelude::*;
+
+    /// The SIMD 2×2 means equal the portable ones bit for bit (and write whole vectors only).
+    #[test]
+    fn simd_half_rows_equal_portable_ones() {
+        for channels in [1usize, 3, 4] {
+            for pixels in [1usize, 7, 8, 31, 32, 33, 64, 100] {
+                let n = pixels * channels;
+                let bytes = |seed: u64| -> Vec<u8> {
+                    randoms(seed, 2 * n)
+                        .iter()
+                        .map(|&x| (x * 256.0) as u8)
+                        .collect()
+                };
+                let (top, bottom) = (bytes(n as u64), bytes(n as u64 + 7));
+                let mut want = vec![0u8; n];
+                half_row_any(channels, &top, &bottom, &mut want);
+                let mut got = vec![0u8; n];
+                let done = u8::half_simd(channels, &top, &bottom, &mut got);
+                assert_eq!(done % 32, 0);
+                assert!(done <= n);
+                half_row_any(
+                    channels,
+                    &top[2 * done..],
+                    &bottom[2 * done..],
+                    &mut got[done..],
+                );
+                assert_eq!(got, want, "channels {channels} pixels {pixels}");
+            }
+        }
+    }
 
     const METHODS: [Interpolation; 5] = [
         Interpolation::Nearest,

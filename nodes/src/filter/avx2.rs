@@ -1,5 +1,7 @@
-//! AVX2 kernels of the u8 fixed-point smoothing filter (see [`super::gaussian`]), written with
-//! intrinsics because the auto-vectorizer cannot express the one operation they are built on:
+//! AVX2 kernels written with intrinsics where the auto-vectorizer does poorly: the 2×2 area
+//! shrink of u8 images (pairs of adjacent pixels summed by `pmaddubsw` instead of
+//! de-interleaving loads), and the u8 fixed-point smoothing filter (see [`super::gaussian`]),
+//! built on one operation the auto-vectorizer cannot express:
 //! the high half of a 16-bit product (`pmulhuw`). Written in portable Rust, `⌊a·b / 2¹⁶⌋`
 //! is vectorized in 32-bit lanes (zero-extend, multiply, pack, permute), which costs twice the
 //! instructions. The arithmetic here is exactly that of the portable kernels in `gaussian.rs`
@@ -10,6 +12,9 @@
 //! `_mm256_mulhi_epu16` intrinsic into generic IR and, when an operand is an average or a
 //! shifted value, lowers it back in 32-bit lanes again.
 //!
+//! Both compute exactly what the portable code computes (integer arithmetic), so results are
+//! bit-identical with or without AVX2.
+//!
 //! Unsafe code is confined to this module: the calls into `#[target_feature(enable = "avx2")]`
 //! functions, made only after `is_x86_feature_detected!("avx2")`, unaligned loads and stores
 //! through pointers to fixed-size arrays borrowed from slices, and that one instruction.
@@ -17,8 +22,9 @@
 
 use std::arch::x86_64::{
     __m128i, __m256i, _mm_loadu_si128, _mm256_add_epi16, _mm256_cvtepu8_epi16, _mm256_loadu_si256,
-    _mm256_packus_epi16, _mm256_permute4x64_epi64, _mm256_set1_epi16, _mm256_slli_epi16,
-    _mm256_srli_epi16, _mm256_storeu_si256,
+    _mm256_maddubs_epi16, _mm256_packus_epi16, _mm256_permute4x64_epi64, _mm256_set1_epi8,
+    _mm256_set1_epi16, _mm256_setr_epi8, _mm256_shuffle_epi8, _mm256_slli_epi16,
+    _mm256_srli_epi16 as srli16, _mm256_srli_epi16, _mm256_storeu_si256,
 };
 
 /// Lanes per vector (16-bit).
@@ -270,5 +276,65 @@ fn store32(out: &mut [u8], v: __m256i) {
     if let Ok(bytes) = <&mut [u8; 32]>::try_from(out) {
         // SAFETY: `bytes` is 32 writable bytes, exclusively borrowed; unaligned store.
         unsafe { _mm256_storeu_si256(bytes.as_mut_ptr().cast::<__m256i>(), v) }
+    }
+}
+
+/// 2×2 block means of a u8 image with `channels` 1 or 4, `(a + b + c + d + 2) >> 2`, for the
+/// whole vectors of 32 output samples of `out` from source rows `top` and `bottom` (each at
+/// least `2·out.len()` samples); returns how many samples it wrote. `None` without AVX2 or for
+/// other channel counts.
+pub(crate) fn half_u8(channels: usize, top: &[u8], bottom: &[u8], out: &mut [u8]) -> Option<usize> {
+    if !available() || !(channels == 1 || channels == 4) {
+        return None;
+    }
+    // SAFETY: AVX2 is available (checked above).
+    Some(unsafe { half_u8_avx2(channels == 4, top, bottom, out) })
+}
+
+#[target_feature(enable = "avx2")]
+fn half_u8_avx2(rgba: bool, top: &[u8], bottom: &[u8], out: &mut [u8]) -> usize {
+    let n = out.len().min(top.len() / 2).min(bottom.len() / 2);
+    let whole = n - n % 32;
+    let ones = _mm256_set1_epi8(1);
+    let two = _mm256_set1_epi16(2);
+    // RGBA: within each 8 bytes (two pixels), put the same channel of both pixels side by side.
+    let order = _mm256_setr_epi8(
+        0, 4, 1, 5, 2, 6, 3, 7, 8, 12, 9, 13, 10, 14, 11, 15, 0, 4, 1, 5, 2, 6, 3, 7, 8, 12, 9, 13,
+        10, 14, 11, 15,
+    );
+    // Pair sums (u16) of 32 source bytes from `i`.
+    let pairs = |row: &[u8], i: usize| {
+        let v = load_bytes32(row, i);
+        let v = if rgba {
+            _mm256_shuffle_epi8(v, order)
+        } else {
+            v
+        };
+        _mm256_maddubs_epi16(v, ones)
+    };
+    for (k, o) in out[..whole].chunks_exact_mut(32).enumerate() {
+        let i = 2 * 32 * k;
+        let low = _mm256_add_epi16(_mm256_add_epi16(pairs(top, i), pairs(bottom, i)), two);
+        let high = _mm256_add_epi16(
+            _mm256_add_epi16(pairs(top, i + 32), pairs(bottom, i + 32)),
+            two,
+        );
+        let (low, high) = (srli16::<2>(low), srli16::<2>(high));
+        let bytes = _mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_packus_epi16(low, high));
+        store32(o, bytes);
+    }
+    whole
+}
+
+/// 32 bytes from `data[i..]` (zeros past the end).
+#[target_feature(enable = "avx2")]
+fn load_bytes32(data: &[u8], i: usize) -> __m256i {
+    match data
+        .get(i..i + 32)
+        .and_then(|s| <&[u8; 32]>::try_from(s).ok())
+    {
+        // SAFETY: `bytes` is 32 readable bytes; the load has no alignment requirement.
+        Some(bytes) => unsafe { _mm256_loadu_si256(bytes.as_ptr().cast::<__m256i>()) },
+        None => _mm256_set1_epi16(0),
     }
 }
