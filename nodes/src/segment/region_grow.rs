@@ -1,0 +1,1 @@
+//! `segment.region_grow` (in progress).
