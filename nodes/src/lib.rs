@@ -75,6 +75,9 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<io::read_image::ReadImage>()?;
     registry.register::<io::write_image::WriteImage>()?;
     registry.register::<segment::components::Components>()?;
+    registry.register::<segment::region_grow::RegionGrow>()?;
+    registry.register::<segment::watershed::Watershed>()?;
+    registry.register::<segment::kmeans::Kmeans>()?;
     Ok(())
 }
 
