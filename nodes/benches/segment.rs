@@ -53,6 +53,13 @@ fn components(c: &mut Criterion) {
     let mut group = c.benchmark_group("components 8");
     for (name, w, h) in [("1080p", 1920, 1080), ("2160p", 3840, 2160)] {
         let image = input(name, w, h);
+        match connected_components(&image, true, true) {
+            Ok(l) => {
+                let area: u64 = l.stats.iter().map(|s| s.area).sum();
+                eprintln!("{name}: {} components, {area} foreground pixels", l.count);
+            }
+            Err(e) => panic!("labeling the benchmark input: {e}"),
+        }
         group.bench_function(format!("{name} labels"), |b| {
             b.iter(|| connected_components(black_box(&image), true, false))
         });

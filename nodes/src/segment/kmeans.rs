@@ -557,9 +557,9 @@ mod tests {
             for x in 0..w {
                 let s = ((x * 7 + y * 3) / 5) % colours.len();
                 truth.push(s as u32);
-                for ch in 0..3 {
+                for (ch, &colour) in colours[s].iter().enumerate() {
                     let i = (y * w + x) * 3 + ch;
-                    let v = colours[s][ch] + (r[i] as f32 * 2.0 - 1.0) * noise;
+                    let v = colour + (r[i] as f32 * 2.0 - 1.0) * noise;
                     data.push(v.round().clamp(0.0, 255.0) as u8);
                 }
             }

@@ -424,8 +424,8 @@ mod tests {
             let cc = super::super::components::connected_components(
                 &Image::from_f32(w, h, Channels::Gray, within).unwrap(), eight, false).unwrap();
             let target = cc.labels[sy * w + sx];
-            for i in 0..w * h {
-                prop_assert_eq!(l[i] == 1, cc.labels[i] == target);
+            for (&got, &component) in l.iter().zip(&cc.labels) {
+                prop_assert_eq!(got == 1, component == target);
             }
         }
     }
