@@ -184,12 +184,37 @@ pub fn stats_rows(stats: &[ComponentStats]) -> Vec<f64> {
 /// A sample that is foreground when nonzero.
 trait Mask: Copy + Send + Sync {
     fn set(self) -> bool;
+
+    /// Bit i set for every foreground sample i of a full 64-sample chunk.
+    #[inline(always)]
+    fn pack64(chunk: &[Self]) -> u64 {
+        let mut w = 0u64;
+        for (i, &s) in chunk.iter().enumerate() {
+            w |= (s.set() as u64) << i;
+        }
+        w
+    }
 }
 
 impl Mask for u8 {
     #[inline(always)]
     fn set(self) -> bool {
         self != 0
+    }
+
+    /// Eight bytes at a time: a byte's high bit becomes "nonzero" (its low 7 bits plus 0x7F
+    /// carry into bit 7 unless they are 0), and one multiply gathers the eight high bits.
+    #[inline(always)]
+    fn pack64(chunk: &[u8]) -> u64 {
+        const LOW7: u64 = 0x7F7F_7F7F_7F7F_7F7F;
+        const GATHER: u64 = 0x0102_0408_1020_4080;
+        let mut w = 0u64;
+        for (k, b) in chunk.chunks_exact(8).enumerate() {
+            let v = u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]);
+            let high = (((v & LOW7) + LOW7) | v) & !LOW7;
+            w |= ((high >> 7).wrapping_mul(GATHER) >> 56) << (8 * k);
+        }
+        w
     }
 }
 
@@ -371,11 +396,7 @@ fn scan_band<T: Mask>(chunk: &[T], width: usize, eight: bool) -> Band {
 fn pack_bits<T: Mask>(row: &[T], bits: &mut [u64]) {
     let mut chunks = row.chunks_exact(64);
     for (word, chunk) in bits.iter_mut().zip(&mut chunks) {
-        let mut w = 0u64;
-        for (i, &s) in chunk.iter().enumerate() {
-            w |= (s.set() as u64) << i;
-        }
-        *word = w;
+        *word = T::pack64(chunk);
     }
     let rest = chunks.remainder();
     if !rest.is_empty() {
@@ -611,6 +632,21 @@ mod tests {
     }
 
     #[test]
+    fn byte_packing_matches_per_sample_test() {
+        for start in 0..=255u16 {
+            let chunk: Vec<u8> = (0..64u16)
+                .map(|i| ((start + i * 37) % 256) as u8)
+                .map(|v| if v % 3 == 0 { 0 } else { v })
+                .collect();
+            let expect = chunk
+                .iter()
+                .enumerate()
+                .fold(0u64, |w, (i, &v)| w | ((v != 0) as u64) << i);
+            assert_eq!(u8::pack64(&chunk), expect);
+        }
+    }
+
+    #[test]
     fn u_shape_merges_late_and_keeps_first_label() {
         // Two arms first seen as separate runs join at the bottom: one component, label 1; the
         // component starting later in row 0 is 2.
@@ -694,10 +730,21 @@ mod tests {
             density in 0.2f64..0.8,
             seed in 0u64..1_000_000,
             eight in any::<bool>(),
+            bytes in any::<bool>(),
         ) {
-            let fg: Vec<bool> = randoms(seed, w * h).iter().map(|&r| r < density).collect();
-            let data: Vec<f32> = fg.iter().map(|&b| if b { 1.0 } else { 0.0 }).collect();
-            let img = Image::from_f32(w, h, Channels::Gray, data).unwrap();
+            let r = randoms(seed, w * h);
+            let fg: Vec<bool> = r.iter().map(|&r| r < density).collect();
+            let img = if bytes {
+                // Any nonzero byte is foreground: 1..=255 from the same random numbers.
+                let data = r
+                    .iter()
+                    .map(|&r| if r < density { 1 + (r / density * 254.99) as u8 } else { 0 })
+                    .collect();
+                Image::from_u8(w, h, Channels::Gray, data).unwrap()
+            } else {
+                let data = fg.iter().map(|&b| if b { 1.0 } else { 0.0 }).collect();
+                Image::from_f32(w, h, Channels::Gray, data).unwrap()
+            };
             let got = connected_components(&img, eight, true).unwrap();
             let (expect, n) = flood(&fg, w, h, eight);
             prop_assert_eq!(got.count, n);
