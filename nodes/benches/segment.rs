@@ -4,6 +4,10 @@
 //! `connectedComponentsWithStats`. Compare single-threaded with
 //! `RAYON_NUM_THREADS=1 cargo bench -p ocellus-nodes --bench segment`.
 //!
+//! Also k-means (k = 8, 10 iterations, 1 attempt; `cv2.kmeans` with `TERM_CRITERIA_MAX_ITER`
+//! 10 and `KMEANS_PP_CENTERS` does the same work) and the marker watershed (a marker every 64 px;
+//! `cv2.watershed`) on the 1080p RGB image.
+//!
 //! With `OCELLUS_BENCH_INPUTS` set to a folder holding `synth_1080p_gray.png` and
 //! `synth_2160p_gray.png` those are binarized; otherwise generated test cards of the same sizes.
 
@@ -16,11 +20,18 @@ use ocellus_engine::value::{Channels, Depth, Image, PixelFormat};
 use ocellus_nodes::capture::pattern::{Drawing, render};
 use ocellus_nodes::filter::threshold::{ThresholdMethod, ThresholdMode, threshold};
 use ocellus_nodes::segment::components::connected_components;
+use ocellus_nodes::segment::kmeans::{KmeansConfig, kmeans};
+use ocellus_nodes::segment::watershed::watershed;
 
-fn input(name: &str, width: usize, height: usize) -> Image {
-    let gray = match std::env::var("OCELLUS_BENCH_INPUTS") {
+fn load(name: &str, channels: Channels, width: usize, height: usize) -> Image {
+    let suffix = if channels == Channels::Gray {
+        "gray"
+    } else {
+        "rgb"
+    };
+    match std::env::var("OCELLUS_BENCH_INPUTS") {
         Ok(dir) => match read_image(
-            &Path::new(&dir).join(format!("synth_{name}_gray.png")),
+            &Path::new(&dir).join(format!("synth_{name}_{suffix}.png")),
             &DecodeLimits::default(),
         ) {
             Ok(image) => image,
@@ -28,7 +39,7 @@ fn input(name: &str, width: usize, height: usize) -> Image {
         },
         Err(_) => {
             let format = PixelFormat {
-                channels: Channels::Gray,
+                channels,
                 depth: Depth::U8,
             };
             match render(Drawing::TestCard { square: 32 }, width, height, format) {
@@ -36,7 +47,11 @@ fn input(name: &str, width: usize, height: usize) -> Image {
                 Err(e) => panic!("rendering the benchmark input: {e}"),
             }
         }
-    };
+    }
+}
+
+fn input(name: &str, width: usize, height: usize) -> Image {
+    let gray = load(name, Channels::Gray, width, height);
     match threshold(
         &gray,
         ThresholdMethod::Otsu,
@@ -70,5 +85,39 @@ fn components(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, components);
+fn kmeans_rgb(c: &mut Criterion) {
+    let image = load("1080p", Channels::Rgb, 1920, 1080);
+    let config = KmeansConfig {
+        k: 8,
+        max_iterations: 10,
+        epsilon: 0.0,
+        attempts: 1,
+        seed: 0,
+    };
+    c.bench_function("kmeans k8 10 iterations/1080p rgb u8", |b| {
+        b.iter(|| kmeans(black_box(&image), &config))
+    });
+}
+
+fn watershed_rgb(c: &mut Criterion) {
+    let image = load("1080p", Channels::Rgb, 1920, 1080);
+    let (w, h) = (image.width(), image.height());
+    let mut markers = vec![0f32; w * h];
+    let mut label = 0.0;
+    for y in (32..h).step_by(64) {
+        for x in (32..w).step_by(64) {
+            label += 1.0;
+            markers[y * w + x] = label;
+        }
+    }
+    let markers = match Image::from_f32(w, h, Channels::Gray, markers) {
+        Ok(m) => m,
+        Err(e) => panic!("benchmark markers: {e}"),
+    };
+    c.bench_function("watershed grid markers/1080p rgb u8", |b| {
+        b.iter(|| watershed(black_box(&image), &markers))
+    });
+}
+
+criterion_group!(benches, components, kmeans_rgb, watershed_rgb);
 criterion_main!(benches);

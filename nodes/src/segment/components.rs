@@ -604,6 +604,8 @@ mod tests {
 
     #[test]
     fn hand_made_mask_4_and_8() {
+        // Expected labels and the stats of component 2 are OpenCV 5's `connectedComponents` /
+        // `connectedComponentsWithStats` on the same mask.
         let m = mask(6, 4, &["#..#..", ".#.#.#", "....#.", "##...."]);
         let l8 = connected_components(&m, true, true).unwrap();
         #[rustfmt::skip]
