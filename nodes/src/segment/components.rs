@@ -73,7 +73,8 @@ path halving, the smaller run index always the root, in parallel over fixed band
 joined afterwards in band order. The result is bit-identical for any thread count.
 
 Numbering: identical to OpenCV's `connectedComponents` for connectivity 4 (every algorithm) and
-to its pixel-scan algorithms (`CCL_WU`, `CCL_SAUF`) for 8. OpenCV's default for 8-connectivity
+to its pixel-scan algorithms (`CCL_WU`, `CCL_SAUF`) for 8 (checked on a binarized 1080p image,
+every pixel). OpenCV's default for 8-connectivity
 (Spaghetti / BBDT) scans 2×2 blocks and numbers components in block-raster order, which can
 differ; the partition into components is the same. Errors if the image has more than 2^24
 components (f32 labels would no longer be exact) or more than one channel.

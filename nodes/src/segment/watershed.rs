@@ -51,8 +51,8 @@ pixels is the largest absolute difference over channels (the sample difference f
 the 8-bit image itself: there is no separate gradient image, exactly as OpenCV.
 
 Agreement: same steps, neighbour order (left, right, up, down) and FIFO queues as
-`cv::watershed`, so the labels are identical (checked on pasted OpenCV results, gray and colour,
-100% of pixels). OpenCV takes only 8-bit 3-channel images; this also takes gray u8 (equivalent
+`cv::watershed`, so the labels are identical (checked: pasted OpenCV results, gray and colour,
+and a 1080p RGB image with 510 markers, 100% of pixels). OpenCV takes only 8-bit 3-channel images; this also takes gray u8 (equivalent
 to the gray value repeated in three channels). Markers must be integers below 2^24 in
 magnitude. Not reached pixels (unknown regions enclosed by -1 or without markers) stay 0.
 
