@@ -8,6 +8,7 @@ pub mod capture;
 pub mod detect;
 pub mod filter;
 pub mod io;
+pub mod segment;
 
 use ocellus_engine::op::{Registry, RegistryError};
 
@@ -73,6 +74,10 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<analyze::histogram::Histogram>()?;
     registry.register::<io::read_image::ReadImage>()?;
     registry.register::<io::write_image::WriteImage>()?;
+    registry.register::<segment::components::Components>()?;
+    registry.register::<segment::region_grow::RegionGrow>()?;
+    registry.register::<segment::watershed::Watershed>()?;
+    registry.register::<segment::kmeans::Kmeans>()?;
     Ok(())
 }
 
