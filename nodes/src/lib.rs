@@ -8,6 +8,7 @@ pub mod capture;
 pub mod detect;
 pub mod filter;
 pub mod io;
+pub mod segment;
 
 use ocellus_engine::op::{Registry, RegistryError};
 
@@ -71,6 +72,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::histogram::Equalize>()?;
     registry.register::<filter::histogram::Clahe>()?;
     registry.register::<analyze::histogram::Histogram>()?;
+    registry.register::<segment::background::Background>()?;
     registry.register::<io::read_image::ReadImage>()?;
     registry.register::<io::write_image::WriteImage>()?;
     Ok(())

@@ -1,0 +1,1 @@
+//! `segment.graph_cut` (in progress).

@@ -1,0 +1,4 @@
+//! Segmentation: splitting images into regions (foreground/background, labels).
+
+pub mod background;
+pub mod graph_cut;
