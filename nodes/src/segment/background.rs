@@ -35,7 +35,7 @@ param_enum! {
         /// Running average `B ← (1−α)·B + α·I`; foreground where `max_c |I − B| > threshold`.
         RunningAverage = "running_average",
         /// Per-pixel, per-channel running mean and variance; foreground where the normalized
-        /// distance `Σ_c (I−μ)²/σ²` exceeds `k_sigma²`.
+        /// distance `Σ_c (I−μ)²/σ²` exceeds `channels · k_sigma²`.
         Gaussian = "gaussian",
         /// Stauffer–Grimson mixture of `n_gaussians` Gaussians per pixel.
         Mog = "mog",
@@ -171,14 +171,15 @@ Methods (`method`):
   |I − B| > `threshold` (tested before the update).
 - `gaussian` (Wren et al., "Pfinder", 1997): per pixel and channel a running mean μ and
   variance σ², starting at the first frame and `initial_variance`; foreground where
-  Σ_c (I−μ_c)²/σ_c² > `k_sigma`²; background pixels then learn (selective update, so a
+  Σ_c (I−μ_c)²/σ_c² > C·`k_sigma`² (C channels: the root-mean-square z-score exceeds k, so
+  k means the same for gray and colour); background pixels then learn (selective update, so a
   passing object does not inflate the variance): μ ← μ + α·d, σ² ← (1−α)·(σ² + α·d²) with
   d = I − μ (the exponentially weighted variance), σ² ≥ 4. An object that stops stays
   foreground under this method; `mog` absorbs it as its Gaussian gains weight.
 - `mog` (Stauffer & Grimson, "Adaptive background mixture models for real-time tracking",
   CVPR 1999): per pixel up to `n_gaussians` Gaussians (weight w, mean μ, one variance σ² shared
-  by the channels), kept sorted by w/σ. The first one with Σ_c (I−μ_c)² < `k_sigma`²·σ² matches
-  (the Mahalanobis test of an isotropic covariance); weights become (1−α)·w + α·[matched], the
+  by the channels), kept sorted by w/σ. The first one with Σ_c (I−μ_c)² < C·`k_sigma`²·σ²
+  matches (the Mahalanobis test of an isotropic covariance, normalized by the C channels); weights become (1−α)·w + α·[matched], the
   matched Gaussian moves with ρ = α/w: μ ← (1−ρ)μ + ρI, σ² ← (1−ρ)σ² + ρ·|I−μ|²/channels
   (σ² ≥ 4). Without a match the weakest Gaussian is replaced by one at I with variance
   `initial_variance` and weight α, and the weights are renormalized. The background is the
@@ -372,8 +373,12 @@ impl BackgroundSubtractor {
             return Image::from_u8(self.width, self.height, Channels::Gray, mask)
                 .map_err(|e| e.to_string());
         };
-        if (frame.width(), frame.height(), frame.channels(), frame.depth())
-            != (self.width, self.height, self.channels, self.depth)
+        if (
+            frame.width(),
+            frame.height(),
+            frame.channels(),
+            frame.depth(),
+        ) != (self.width, self.height, self.channels, self.depth)
         {
             return Err(format!(
                 "is {}×{} {} {}, but the first frame was {}×{} {} {}",
@@ -399,7 +404,8 @@ impl BackgroundSubtractor {
                     .for_each(|((b, x), m)| average_step(b, x, m, c, alpha, t));
             }
             Model::Gaussian { mean, var } => {
-                let k2 = cfg.k_sigma * cfg.k_sigma;
+                // RMS over channels of the z-scores: Σ_c d²/σ² against c·k².
+                let k2 = cfg.k_sigma * cfg.k_sigma * c as f32;
                 mean.par_chunks_mut(BAND_PIXELS * c)
                     .zip(var.par_chunks_mut(BAND_PIXELS * c))
                     .zip(levels.par_chunks(BAND_PIXELS * c))
@@ -525,13 +531,18 @@ fn mog_pixel(g: &mut [f32], x: &[f32], cfg: &BackgroundConfig, alpha: f32) -> u8
     let c = x.len();
     let s = c + 2;
     let k = g.len() / s;
-    let k2 = cfg.k_sigma * cfg.k_sigma;
+    // σ² is a per-channel variance: Σ_c d² is compared with c·k²·σ².
+    let k2 = cfg.k_sigma * cfg.k_sigma * c as f32;
     let mut matched = None;
     for (i, comp) in g.chunks_exact(s).enumerate() {
         if comp[0] <= 0.0 {
             break;
         }
-        let d2: f32 = comp[2..].iter().zip(x).map(|(&m, &x)| (x - m) * (x - m)).sum();
+        let d2: f32 = comp[2..]
+            .iter()
+            .zip(x)
+            .map(|(&m, &x)| (x - m) * (x - m))
+            .sum();
         if d2 < k2 * comp[1] {
             matched = Some(i);
             break;
@@ -675,7 +686,12 @@ mod tests {
     }
 
     fn to_image(levels: &[f32], w: usize, h: usize, c: usize, depth: Depth) -> Image {
-        let channels = [Channels::Gray, Channels::Gray, Channels::Gray, Channels::Rgb][c];
+        let channels = [
+            Channels::Gray,
+            Channels::Gray,
+            Channels::Gray,
+            Channels::Rgb,
+        ][c];
         Image::new(w, h, channels, from_levels(levels, depth)).unwrap()
     }
 
@@ -702,10 +718,7 @@ mod tests {
                 }
             }
         }
-        (
-            tp as f64 / (tp + fp) as f64,
-            tp as f64 / (tp + fneg) as f64,
-        )
+        (tp as f64 / (tp + fp) as f64, tp as f64 / (tp + fneg) as f64)
     }
 
     #[test]
@@ -762,7 +775,10 @@ mod tests {
         };
         let mut sub = BackgroundSubtractor::new(config).unwrap();
         let img = |v: Vec<u8>| Image::from_u8(2, 1, Channels::Gray, v).unwrap();
-        assert_eq!(sub.apply(&img(vec![100, 100])).unwrap().as_u8().unwrap(), [0, 0]);
+        assert_eq!(
+            sub.apply(&img(vec![100, 100])).unwrap().as_u8().unwrap(),
+            [0, 0]
+        );
         // Frame 2: α = max(0.25, 1/2) = 0.5; |108 − 100| = 8 ≤ 10, |120 − 100| = 20 > 10.
         assert_eq!(
             sub.apply(&img(vec![108, 120])).unwrap().as_u8().unwrap(),
