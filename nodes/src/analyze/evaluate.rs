@@ -674,10 +674,10 @@ mod tests {
             prop_assert_eq!(c.tp + c.fp, p.iter().filter(|&&x| x).count() as u64);
             prop_assert_eq!(c.tp + c.fn_, t.iter().filter(|&&x| x).count() as u64);
             let m = c.metrics();
-            if let (Some(&pr), Some(&re), Some(&f1)) = (m.get("precision"), m.get("recall"), m.get("f1")) {
-                if pr + re > 0.0 {
-                    prop_assert!((f1 - 2.0 * pr * re / (pr + re)).abs() < 1e-12);
-                }
+            if let (Some(&pr), Some(&re), Some(&f1)) = (m.get("precision"), m.get("recall"), m.get("f1"))
+                && pr + re > 0.0
+            {
+                prop_assert!((f1 - 2.0 * pr * re / (pr + re)).abs() < 1e-12);
             }
         }
     }
