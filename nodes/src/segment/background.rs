@@ -797,6 +797,36 @@ mod tests {
     }
 
     #[test]
+    fn running_average_matches_opencv_accumulate_weighted() {
+        // cv2.accumulateWeighted(frame, acc, 0.5) over frames 1..5 from acc = frame 0 (frames
+        // from numpy's default_rng(42)); with α = 0.5 the warm-up rate max(α, 1/n) is α from
+        // frame 2 on. OpenCV's acc: 179.375, 197.25, 149.25, 110.5625, 89.4375, 137.8125,
+        // 137.375, 53.5625, 87.8125, 106.5, 163.125, 176.375 (rounded half to even below).
+        let frames: [[u8; 12]; 5] = [
+            [22, 198, 167, 112, 110, 219, 22, 178, 51, 24, 134, 249],
+            [188, 194, 183, 201, 131, 32, 214, 115, 128, 94, 46, 237],
+            [200, 164, 103, 210, 139, 113, 115, 58, 23, 141, 227, 16],
+            [219, 211, 70, 161, 42, 194, 179, 90, 17, 248, 114, 228],
+            [173, 199, 194, 49, 93, 119, 127, 11, 139, 39, 190, 174],
+        ];
+        let config = BackgroundConfig {
+            method: BackgroundMethod::RunningAverage,
+            learning_rate: 0.5,
+            ..BackgroundConfig::default()
+        };
+        let mut sub = BackgroundSubtractor::new(config).unwrap();
+        for f in &frames {
+            sub.apply(&Image::from_u8(4, 3, Channels::Gray, f.to_vec()).unwrap())
+                .unwrap();
+        }
+        let bg = sub.background().unwrap().unwrap();
+        assert_eq!(
+            bg.as_u8().unwrap(),
+            [179, 197, 149, 111, 89, 138, 137, 54, 88, 106, 163, 176]
+        );
+    }
+
+    #[test]
     fn gaussian_hand_computed() {
         let config = BackgroundConfig {
             method: BackgroundMethod::Gaussian,
