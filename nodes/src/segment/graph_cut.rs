@@ -495,8 +495,8 @@ pub fn graph_cut(
     }
     let (d_fg, d_bg) = data_costs(&levels, c, n, data)?;
     let mut g = MaxFlowGraph::new(n);
-    let pairs = neighbour_pairs(w, h, connectivity);
-    g.reserve_edges(pairs.len());
+    let per_pixel = if connectivity == 8 { 4 } else { 2 };
+    g.reserve_edges(per_pixel * n);
     let inv = 1.0 / (2.0 * sigma * sigma);
     let weight = |p: usize, q: usize, scale: f64| {
         let d2: f64 = levels[p * c..(p + 1) * c]
@@ -506,11 +506,17 @@ pub fn graph_cut(
             .sum();
         lambda * scale * (-d2 * inv).exp()
     };
-    let mut weights = Vec::with_capacity(pairs.len());
-    for &(p, q, scale) in &pairs {
-        let wpq = weight(p, q, scale);
-        g.add_edge(p, q, wpq, wpq)?;
-        weights.push(wpq);
+    let mut failure = None;
+    if lambda > 0.0 {
+        for_each_pair(w, h, connectivity, |p, q, scale| {
+            let wpq = weight(p, q, scale);
+            if let Err(e) = g.add_edge(p, q, wpq, wpq) {
+                failure.get_or_insert(e);
+            }
+        });
+    }
+    if let Some(e) = failure {
+        return Err(e);
     }
     for p in 0..n {
         // Cutting source → p puts p on the sink (background) side; p → sink keeps it
@@ -519,13 +525,16 @@ pub fn graph_cut(
     }
     let flow = g.maxflow();
     let foreground: Vec<bool> = (0..n).map(|p| g.segment(p) == Segment::Source).collect();
+    drop(g);
     let mut energy: f64 = (0..n)
         .map(|p| if foreground[p] { d_fg[p] } else { d_bg[p] })
         .sum();
-    for (&(p, q, _), &wpq) in pairs.iter().zip(&weights) {
-        if foreground[p] != foreground[q] {
-            energy += wpq;
-        }
+    if lambda > 0.0 {
+        for_each_pair(w, h, connectivity, |p, q, scale| {
+            if foreground[p] != foreground[q] {
+                energy += weight(p, q, scale);
+            }
+        });
     }
     Ok(GraphCutResult {
         foreground,
@@ -586,30 +595,29 @@ fn data_costs(
     }
 }
 
-/// Neighbour pairs (p, q, distance scale) of a `w × h` grid, each pair once.
-fn neighbour_pairs(w: usize, h: usize, connectivity: u32) -> Vec<(usize, usize, f64)> {
+/// Calls `f(p, q, distance scale)` for every neighbour pair of a `w × h` grid, once each, in
+/// row-major order.
+fn for_each_pair(w: usize, h: usize, connectivity: u32, mut f: impl FnMut(usize, usize, f64)) {
     let diag = std::f64::consts::FRAC_1_SQRT_2;
-    let mut pairs = Vec::new();
     for y in 0..h {
         for x in 0..w {
             let p = y * w + x;
             if x + 1 < w {
-                pairs.push((p, p + 1, 1.0));
+                f(p, p + 1, 1.0);
             }
             if y + 1 < h {
-                pairs.push((p, p + w, 1.0));
+                f(p, p + w, 1.0);
                 if connectivity == 8 {
                     if x + 1 < w {
-                        pairs.push((p, p + w + 1, diag));
+                        f(p, p + w + 1, diag);
                     }
                     if x > 0 {
-                        pairs.push((p, p + w - 1, diag));
+                        f(p, p + w - 1, diag);
                     }
                 }
             }
         }
     }
-    pairs
 }
 
 /// Graph-cut segmentation (`segment.graph_cut`). See [`graph_cut`].
@@ -893,7 +901,8 @@ mod tests {
             // Brute force over all labellings.
             let levels = to_levels(&image);
             let (dfg, dbg) = data_costs(&levels, 1, n, &data).unwrap();
-            let pairs = neighbour_pairs(w, h, conn);
+            let mut pairs = Vec::new();
+            for_each_pair(w, h, conn, |p, q, s| pairs.push((p, q, s)));
             let mut best = f64::INFINITY;
             for set in 0u32..(1 << n) {
                 let fg = |i: usize| set >> i & 1 == 1;
