@@ -254,18 +254,18 @@ pub fn roc_curve(scores: &[f64], truth: &[bool], steps: usize) -> Result<RocCurv
     }
     let step = (hi - lo) / (steps - 1) as f64;
     let last = steps - 1;
-    let threshold = |k: usize| if k == last { lo } else { hi - k as f64 * step };
-    // First threshold index at which a score counts as positive.
+    let thresholds: Vec<f64> = (0..steps)
+        .map(|k| if k == last { lo } else { hi - k as f64 * step })
+        .collect();
+    let inv_step = if step > 0.0 { 1.0 / step } else { 0.0 };
+    // First threshold index at which a score counts as positive: the estimate ⌈(hi − s)/step⌉,
+    // corrected against the thresholds themselves.
     let first_index = |s: f64| -> usize {
-        let mut k = if step > 0.0 {
-            (((hi - s) / step).ceil().max(0.0) as usize).min(last)
-        } else {
-            0
-        };
-        while k > 0 && s >= threshold(k - 1) {
+        let mut k = (((hi - s) * inv_step).ceil().max(0.0) as usize).min(last);
+        while k > 0 && s >= thresholds[k - 1] {
             k -= 1;
         }
-        while k < last && s < threshold(k) {
+        while k < last && s < thresholds[k] {
             k += 1;
         }
         k
@@ -309,7 +309,7 @@ pub fn roc_curve(scores: &[f64], truth: &[bool], steps: usize) -> Result<RocCurv
         prev_tpr = tpr;
         prev_fpr = fpr;
         points.push(RocPoint {
-            threshold: threshold(k),
+            threshold: thresholds[k],
             tpr,
             fpr,
             precision,

@@ -414,16 +414,17 @@ impl BackgroundSubtractor {
             }
             Model::Mog { comps } => {
                 let stride = cfg.n_gaussians * (c + 2);
+                let band: MogBand = match c {
+                    1 => mog_band::<1>,
+                    2 => mog_band::<2>,
+                    3 => mog_band::<3>,
+                    _ => mog_band::<4>,
+                };
                 comps
                     .par_chunks_mut(BAND_PIXELS * stride)
                     .zip(levels.par_chunks(BAND_PIXELS * c))
                     .zip(mask.par_chunks_mut(BAND_PIXELS))
-                    .for_each(|((g, x), m)| {
-                        for ((g, x), m) in g.chunks_exact_mut(stride).zip(x.chunks_exact(c)).zip(m)
-                        {
-                            *m = mog_pixel(g, x, cfg, alpha);
-                        }
-                    });
+                    .for_each(|((g, x), m)| band(g, x, m, cfg, alpha));
             }
         }
         Image::from_u8(self.width, self.height, Channels::Gray, mask).map_err(|e| e.to_string())
@@ -525,10 +526,32 @@ fn gaussian_step(
     }
 }
 
-/// One pixel of the mixture: `g` holds `k` components `[w, σ², μ_0..μ_{c−1}]` sorted by w/σ.
+/// A band of mixture pixels: components, samples, mask, settings, learning rate.
+type MogBand = fn(&mut [f32], &[f32], &mut [u8], &BackgroundConfig, f32);
+
+/// [`mog_pixel`] over a band of pixels with `C` channels.
+fn mog_band<const C: usize>(
+    g: &mut [f32],
+    x: &[f32],
+    m: &mut [u8],
+    cfg: &BackgroundConfig,
+    alpha: f32,
+) {
+    let stride = cfg.n_gaussians * (C + 2);
+    for ((g, x), m) in g.chunks_exact_mut(stride).zip(x.as_chunks::<C>().0).zip(m) {
+        *m = mog_pixel::<C>(g, x, cfg, alpha);
+    }
+}
+
+/// One pixel of the mixture: `g` holds `k` components `[w, σ², μ_0..μ_{C−1}]` sorted by w/σ.
 /// Returns the mask value.
-fn mog_pixel(g: &mut [f32], x: &[f32], cfg: &BackgroundConfig, alpha: f32) -> u8 {
-    let c = x.len();
+fn mog_pixel<const C: usize>(
+    g: &mut [f32],
+    x: &[f32; C],
+    cfg: &BackgroundConfig,
+    alpha: f32,
+) -> u8 {
+    let c = C;
     let s = c + 2;
     let k = g.len() / s;
     // σ² is a per-channel variance: Σ_c d² is compared with c·k²·σ².
@@ -582,14 +605,18 @@ fn mog_pixel(g: &mut [f32], x: &[f32], cfg: &BackgroundConfig, alpha: f32) -> u8
             comp[0] *= inv;
         }
     }
-    // Only the changed component can be out of order: bubble it into place.
-    let key = |g: &[f32], i: usize| g[i * s] / g[i * s + 1].sqrt();
+    // Only the changed component can be out of order: bubble it into place. w_a/σ_a > w_b/σ_b
+    // is tested as w_a²·σ_b² > w_b²·σ_a² (weights ≥ 0, variances > 0).
+    let before = |g: &[f32], a: usize, b: usize| {
+        let (wa, va, wb, vb) = (g[a * s], g[a * s + 1], g[b * s], g[b * s + 1]);
+        wa * wa * vb > wb * wb * va
+    };
     let mut pos = pos;
-    while pos > 0 && key(g, pos) > key(g, pos - 1) {
+    while pos > 0 && before(g, pos, pos - 1) {
         swap_comps(g, pos, pos - 1, s);
         pos -= 1;
     }
-    while pos + 1 < k && key(g, pos + 1) > key(g, pos) {
+    while pos + 1 < k && before(g, pos + 1, pos) {
         swap_comps(g, pos, pos + 1, s);
         pos += 1;
     }
