@@ -258,10 +258,10 @@ pub fn roc_curve(scores: &[f64], truth: &[bool], steps: usize) -> Result<RocCurv
         .map(|k| if k == last { lo } else { hi - k as f64 * step })
         .collect();
     let inv_step = if step > 0.0 { 1.0 / step } else { 0.0 };
-    // First threshold index at which a score counts as positive: the estimate ⌈(hi − s)/step⌉,
-    // corrected against the thresholds themselves.
+    // First threshold index at which a score counts as positive: the estimate ⌊(hi − s)/step⌋
+    // (a truncating conversion, no libm call), corrected against the thresholds themselves.
     let first_index = |s: f64| -> usize {
-        let mut k = (((hi - s) * inv_step).ceil().max(0.0) as usize).min(last);
+        let mut k = (((hi - s) * inv_step) as usize).min(last);
         while k > 0 && s >= thresholds[k - 1] {
             k -= 1;
         }
