@@ -65,6 +65,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<detect::canny::Canny>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
+    registry.register::<analyze::evaluate::Evaluate>()?;
+    registry.register::<analyze::evaluate::Roc>()?;
     registry.register::<filter::threshold::Threshold>()?;
     registry.register::<filter::threshold::AdaptiveThreshold>()?;
     registry.register::<filter::keying::ChromaKey>()?;
@@ -72,6 +74,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::histogram::Equalize>()?;
     registry.register::<filter::histogram::Clahe>()?;
     registry.register::<analyze::histogram::Histogram>()?;
+    registry.register::<segment::background::Background>()?;
+    registry.register::<segment::graph_cut::GraphCut>()?;
     registry.register::<io::read_image::ReadImage>()?;
     registry.register::<io::write_image::WriteImage>()?;
     registry.register::<segment::components::Components>()?;

@@ -1,5 +1,6 @@
 //! Measurements on values.
 
+pub mod evaluate;
 pub mod histogram;
 pub mod quality;
 pub mod stats;

@@ -1,8 +1,11 @@
 //! Segmentation operators (family `segment`): connected components, region growing, marker
-//! watershed and k-means colour clustering. Label images are gray f32 images holding exact
-//! integer labels (0 = background), at most [`MAX_LABEL`].
+//! watershed, k-means colour clustering, background subtraction over frame sequences and binary
+//! MRF segmentation by graph cut. Label images are gray f32 images holding exact integer labels
+//! (0 = background), at most [`MAX_LABEL`].
 
+pub mod background;
 pub mod components;
+pub mod graph_cut;
 pub mod kmeans;
 pub mod region_grow;
 pub mod watershed;
