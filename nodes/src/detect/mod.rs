@@ -1,3 +1,5 @@
 //! Detectors: edges, corners, blobs.
 
 pub mod canny;
+pub mod gray;
+pub mod mser;
