@@ -3,3 +3,4 @@
 pub mod canny;
 pub mod gray;
 pub mod mser;
+pub mod qr;
