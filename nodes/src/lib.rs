@@ -64,6 +64,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<detect::canny::Canny>()?;
     registry.register::<detect::mser::Mser>()?;
     registry.register::<detect::qr::QrFinder>()?;
+    registry.register::<detect::chessboard::Chessboard>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<filter::threshold::Threshold>()?;

@@ -1,6 +1,7 @@
 //! Detectors: edges, corners, blobs.
 
 pub mod canny;
+pub mod chessboard;
 pub mod gray;
 pub mod mser;
 pub mod qr;
