@@ -65,6 +65,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<detect::mser::Mser>()?;
     registry.register::<detect::qr::QrFinder>()?;
     registry.register::<detect::chessboard::Chessboard>()?;
+    registry.register::<detect::marker::Aruco>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<filter::threshold::Threshold>()?;

@@ -3,5 +3,6 @@
 pub mod canny;
 pub mod chessboard;
 pub mod gray;
+pub mod marker;
 pub mod mser;
 pub mod qr;
