@@ -364,6 +364,36 @@ fn grow_from(
     Some(g.grid)
 }
 
+/// The `columns × rows` (or `rows × columns`) sub-grid of `grid` with the largest summed
+/// response, if the grid exceeds the pattern by at most one row and one column.
+fn best_window(
+    pts: &[Saddle],
+    grid: &[Vec<usize>],
+    columns: usize,
+    rows: usize,
+) -> Option<Vec<Vec<usize>>> {
+    let (gr, gc) = (grid.len(), grid[0].len());
+    let mut best: Option<(f64, Vec<Vec<usize>>)> = None;
+    for (h, w) in [(rows, columns), (columns, rows)] {
+        if gr < h || gc < w || gr > h + 1 || gc > w + 1 {
+            continue;
+        }
+        for r0 in 0..=gr - h {
+            for c0 in 0..=gc - w {
+                let sub: Vec<Vec<usize>> = grid[r0..r0 + h]
+                    .iter()
+                    .map(|row| row[c0..c0 + w].to_vec())
+                    .collect();
+                let score: f64 = sub.iter().flatten().map(|&i| pts[i].response).sum();
+                if best.as_ref().is_none_or(|b| score > b.0) {
+                    best = Some((score, sub));
+                }
+            }
+        }
+    }
+    best.map(|b| b.1)
+}
+
 /// The grid's corners in the output order: `columns` per row, `rows` rows, starting at the
 /// corner nearest the image's top-left (smallest x + y; for square patterns, rows running the
 /// more horizontal way).
@@ -518,15 +548,19 @@ pub fn find_chessboard(
         return None;
     }
     pts.truncate((4 * needed).max(needed + 200));
-    let limit = s.columns.max(s.rows);
+    // Background saddles next to the board (a dark surround makes the outer squares' corners
+    // X-junctions too) can add one row or column on a side: allow one extra and keep the best
+    // window.
+    let limit = s.columns.max(s.rows) + 1;
     let mut found = None;
     'seeds: for seed in 0..pts.len() {
         for signs in [[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]] {
-            if let Some(grid) = grow_from(&pts, seed, signs, limit) {
-                if let Some(corners) = order(&pts, &grid, s.columns, s.rows) {
-                    found = Some(corners);
-                    break 'seeds;
-                }
+            if let Some(grid) = grow_from(&pts, seed, signs, limit)
+                && let Some(grid) = best_window(&pts, &grid, s.columns, s.rows)
+                && let Some(corners) = order(&pts, &grid, s.columns, s.rows)
+            {
+                found = Some(corners);
+                break 'seeds;
             }
         }
     }
@@ -583,8 +617,10 @@ Method:
    first, the nearest candidates along its two edge directions (distance along + 5 × distance
    across) and the candidate nearest the completed parallelogram form a 2×2 seed. Rows and
    columns are added on the four sides by linear extrapolation (next = last + (last − previous)),
-   each prediction needing an unused candidate within 0.4 × the local spacing. A grid of exactly
-   columns × rows (either way round) is the board.
+   each prediction needing an unused candidate within 0.4 × the local spacing. A grid of
+   columns × rows (either way round), or one row and/or column more (saddles of a dark
+   background next to the outer squares), is the board; from a larger grid, the window with the
+   largest summed response is kept.
 3. Order: rows of `columns` corners; the first corner is the grid corner with the smallest x + y
    (for square patterns, rows run the more horizontal way).
 4. Refinement: OpenCV's `cornerSubPix` (window 2·refine_window+1, Gaussian weights
@@ -599,8 +635,9 @@ distance the refinement moved the corners, pixels).
 
 Differences from OpenCV: OpenCV finds the board from quadrilaterals of a dilated binary image and
 orders from a corner determined by its quad linking, which for symmetric boards can start at any
-corner; this operator always starts nearest the image's top-left. Boards larger than the pattern
-are rejected (as by OpenCV).
+corner; this operator always starts nearest the image's top-left. A board one row or column
+larger than the pattern gives the strongest sub-window (OpenCV rejects it); larger ones are
+rejected.
 
 References: A. Geiger et al., "Automatic camera and range sensor calibration using a single
 shot", ICRA 2012 (saddle corners, grid growing); OpenCV `cornerSubPix` (Förstner-style gradient
@@ -837,7 +874,7 @@ mod tests {
         let (w, h) = (260, 200);
         let hm = homography(22.0, 0.0, 15.3, 12.7, 0.0, 0.0);
         let (img, _) = render(w, h, 9, 6, &hm, 1.0, 0.0);
-        for (c, r) in [(8, 6), (9, 7), (5, 5)] {
+        for (c, r) in [(10, 6), (9, 7), (5, 5), (7, 4)] {
             let s = ChessboardSettings {
                 columns: c,
                 rows: r,

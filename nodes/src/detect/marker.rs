@@ -418,11 +418,12 @@ fn square_to_quad(quad: &[[f64; 2]; 4]) -> Option<[f64; 9]> {
             return None;
         }
         a.swap(col, piv);
-        for row in 0..8 {
+        let pivot = a[col];
+        for (row, line) in a.iter_mut().enumerate() {
             if row != col {
-                let f = a[row][col] / a[col][col];
-                for k in col..9 {
-                    a[row][k] -= f * a[col][k];
+                let f = line[col] / pivot[col];
+                for (x, &p) in line[col..].iter_mut().zip(&pivot[col..]) {
+                    *x -= f * p;
                 }
             }
         }
@@ -723,7 +724,7 @@ Example (a node of a graph):
     }
 
     fn new(p: ArucoParams) -> Result<Self, String> {
-        if p.block_size < 3 || p.block_size % 2 == 0 {
+        if p.block_size < 3 || p.block_size.is_multiple_of(2) {
             return Err(format!(
                 "`block_size` must be odd and ≥ 3, got {}",
                 p.block_size
@@ -901,7 +902,10 @@ mod tests {
         ]
     }
 
-    fn scene() -> (Vec<u8>, usize, usize, Vec<(usize, [[f64; 2]; 4])>) {
+    /// Image, width, height and (id, true corners) of each marker.
+    type Scene = (Vec<u8>, usize, usize, Vec<(usize, [[f64; 2]; 4])>);
+
+    fn scene() -> Scene {
         let (w, h) = (420, 320);
         let mut img = vec![240u8; w * h];
         let placements = [

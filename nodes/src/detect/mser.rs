@@ -611,7 +611,10 @@ mod tests {
     }
 
     /// Background 128 with rectangles and discs `(x0, y0, w, h, value)` and discs.
-    fn blobs(w: usize, h: usize, noise: u8) -> (Vec<u8>, Vec<(f64, f64, u32, bool)>) {
+    /// (centroid x, centroid y, area, bright) of a drawn blob.
+    type Blob = (f64, f64, u32, bool);
+
+    fn blobs(w: usize, h: usize, noise: u8) -> (Vec<u8>, Vec<Blob>) {
         let mut img = vec![128u8; w * h];
         let mut truth = Vec::new();
         // Rectangles: x0, y0, w, h, value.

@@ -492,10 +492,9 @@ mod tests {
                         let py = y as f64 + (j as f64 + 0.5) / k as f64 - centre;
                         let u = (c * px + sn * py) / s + n / 2.0;
                         let v = (-sn * px + c * py) / s + n / 2.0;
-                        if u >= 0.0 && v >= 0.0 && u < n && v < n {
-                            if m[v as usize * 25 + u as usize] {
-                                dark += 1;
-                            }
+                        if u >= 0.0 && v >= 0.0 && u < n && v < n && m[v as usize * 25 + u as usize]
+                        {
+                            dark += 1;
                         }
                     }
                 }
@@ -570,7 +569,7 @@ mod tests {
     fn empty_constant_and_operator() {
         assert!(qr_finders(&[], 0, 0, None, 0.5, 2).is_empty());
         assert!(qr_finders(&[9], 1, 1, None, 0.5, 2).is_empty());
-        assert!(qr_finders(&vec![128; 100], 10, 10, None, 0.5, 1).is_empty());
+        assert!(qr_finders(&[128; 100], 10, 10, None, 0.5, 1).is_empty());
         let (img, w, h, truth) = render(4.0, 0.0, 3);
         let rgb: Vec<f32> = img
             .iter()
