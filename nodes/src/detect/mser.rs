@@ -205,12 +205,13 @@ fn build_tree(gray: &[u8], width: usize, height: usize, order: &[u32]) -> Tree {
         if y + 1 < height {
             neighbours[3] = p + width as u32;
         }
+        // Root of the pixel's component, kept up to date across the unions below.
+        let mut ir = p;
         for q in neighbours {
             if q == NONE || tree.uf[q as usize] == NONE {
                 continue;
             }
             let nr = tree.find(q);
-            let ir = tree.find(p);
             if nr == ir {
                 continue;
             }
@@ -221,6 +222,7 @@ fn build_tree(gray: &[u8], width: usize, height: usize, order: &[u32]) -> Tree {
                 let (rn, ri) = (tree.rank[nr as usize], tree.rank[ir as usize]);
                 if rn > ri {
                     tree.attach(ir, nr);
+                    ir = nr;
                 } else {
                     if rn == ri {
                         tree.rank[ir as usize] = ri.saturating_add(1);
