@@ -63,6 +63,10 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::warp::WarpAffine>()?;
     registry.register::<filter::warp::WarpPerspective>()?;
     registry.register::<detect::canny::Canny>()?;
+    registry.register::<detect::mser::Mser>()?;
+    registry.register::<detect::qr::QrFinder>()?;
+    registry.register::<detect::chessboard::Chessboard>()?;
+    registry.register::<detect::marker::Aruco>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<analyze::evaluate::Evaluate>()?;
