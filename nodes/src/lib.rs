@@ -16,6 +16,8 @@ use ocellus_engine::op::{Registry, RegistryError};
 pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<capture::pattern::Pattern>()?;
     registry.register::<capture::sequence::Sequence>()?;
+    registry.register::<capture::moving::MovingShapes>()?;
+    registry.register::<capture::moving::Select>()?;
     registry.register::<filter::grayscale::Grayscale>()?;
     registry.register::<filter::color::ConvertColor>()?;
     registry.register::<filter::convert::ConvertType>()?;

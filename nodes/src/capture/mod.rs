@@ -1,4 +1,5 @@
 //! Sources that synthesise or capture images.
 
+pub mod moving;
 pub mod pattern;
 pub mod sequence;

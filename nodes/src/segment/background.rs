@@ -215,6 +215,13 @@ Example:
                 PortType::Image,
                 "The background model after the last frame, in the frames' pixel format.",
             ),
+            PortSpec::new(
+                "scores",
+                PortType::Image.list_of(),
+                "One gray f32 image per frame: the RMS over channels of |frame − background| in \
+                 8-bit gray levels, against the background before the frame's update (0 for the \
+                 first frame). A graded foreground score for ROC sweeps (`analyze.roc`).",
+            ),
         ]
     }
 
@@ -259,6 +266,7 @@ impl Operator for Background {
         let mut subtractor = BackgroundSubtractor::new(self.config)
             .map_err(|e| OpError::failed(format!("background model: {e}")))?;
         let mut masks = Vec::with_capacity(list.items.len());
+        let mut scores = Vec::with_capacity(list.items.len());
         for (k, item) in list.items.iter().enumerate() {
             let Value::Image(frame) = item else {
                 return Err(OpError::input(
@@ -266,10 +274,25 @@ impl Operator for Background {
                     format!("element {k} is a {}, not an Image", item.port_type()),
                 ));
             };
+            let score = match subtractor.background() {
+                Some(Ok(background)) if background.channels() == frame.channels() => {
+                    background_distance(frame, &background)
+                }
+                Some(Err(e)) => return Err(OpError::failed(format!("background image: {e}"))),
+                _ => Image::from_f32(
+                    frame.width(),
+                    frame.height(),
+                    Channels::Gray,
+                    vec![0.0; frame.width() * frame.height()],
+                )
+                .map_err(|e| e.to_string()),
+            }
+            .map_err(|e| OpError::failed(format!("score image: {e}")))?;
             let mask = subtractor
                 .apply(frame)
                 .map_err(|e| OpError::input("frames", format!("frame {k}: {e}")))?;
             masks.push(Value::image(mask));
+            scores.push(Value::image(score));
         }
         let background = subtractor
             .background()
@@ -277,8 +300,34 @@ impl Operator for Background {
             .map_err(|e| OpError::failed(format!("background image: {e}")))?;
         Ok(Outputs::new()
             .with("masks", Value::list(PortType::Image, masks))
-            .with("background", Value::image(background)))
+            .with("background", Value::image(background))
+            .with("scores", Value::list(PortType::Image, scores)))
     }
+}
+
+/// Per pixel, the RMS over channels of `|frame − background|` in 0–255 levels (gray f32).
+/// Errors if the two differ in size or channels.
+pub fn background_distance(frame: &Image, background: &Image) -> Result<Image, String> {
+    if (frame.width(), frame.height(), frame.channels())
+        != (
+            background.width(),
+            background.height(),
+            background.channels(),
+        )
+    {
+        return Err("frame and background differ in size or channels".into());
+    }
+    let c = frame.channels().count();
+    let (x, b) = (to_levels(frame), to_levels(background));
+    let score = x
+        .chunks_exact(c)
+        .zip(b.chunks_exact(c))
+        .map(|(x, b)| {
+            let sum: f32 = x.iter().zip(b).map(|(x, b)| (x - b) * (x - b)).sum();
+            (sum / c as f32).sqrt()
+        })
+        .collect();
+    Image::from_f32(frame.width(), frame.height(), Channels::Gray, score).map_err(|e| e.to_string())
 }
 
 /// Samples of `image` as f32 on a 0–255 scale: u8 as is, u16 / 257, f32 × 255.
