@@ -62,6 +62,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::warp::WarpAffine>()?;
     registry.register::<filter::warp::WarpPerspective>()?;
     registry.register::<detect::canny::Canny>()?;
+    registry.register::<detect::corners::Corners>()?;
+    registry.register::<detect::fast::Fast>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<filter::threshold::Threshold>()?;

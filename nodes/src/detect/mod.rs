@@ -1,3 +1,5 @@
 //! Detectors: edges, corners, blobs.
 
 pub mod canny;
+pub mod corners;
+pub mod fast;
