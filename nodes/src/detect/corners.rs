@@ -667,3 +667,250 @@ impl Operator for Corners {
             .with("response", Value::image(response)))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn small() -> Vec<f32> {
+        (0..64).map(|i| ((i * 37) % 251) as f32).collect()
+    }
+
+    fn assert_rel(ours: &[f32], expected: &[f32]) {
+        for (o, e) in ours.iter().zip(expected) {
+            assert!(
+                (o - e).abs() <= 1e-5 * e.abs().max(1e-3),
+                "{ours:?} vs {expected:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn harris_matches_opencv_small() {
+        // cv2.cornerHarris(a, 2, 3, 0.04)[3, :] with a[i] = (37 i) mod 251, 8×8 u8.
+        let r = corner_response(&small(), 8, 8, 2, 3, CornerMethod::Harris, 0.04, 255.0);
+        let expected = [
+            0.000801226532,
+            0.000801226532,
+            0.00124267885,
+            0.000893793185,
+            0.00206517195,
+            -0.00263517397,
+            -0.000571596785,
+            0.000801226415,
+        ];
+        assert_rel(&r[24..32], &expected);
+    }
+
+    #[test]
+    fn min_eigen_matches_opencv_small() {
+        // cv2.cornerMinEigenVal(a, 3, 3)[4, :].
+        let r = corner_response(&small(), 8, 8, 3, 3, CornerMethod::ShiTomasi, 0.0, 255.0);
+        let expected = [
+            0.0290295929,
+            0.0288723707,
+            0.0249948055,
+            0.0201478302,
+            0.0144739822,
+            0.00134204328,
+            0.00997309759,
+            0.00997310132,
+        ];
+        assert_rel(&r[32..40], &expected);
+    }
+
+    #[test]
+    fn constant_image_has_zero_response_and_no_corners() {
+        let img = vec![77.0f32; 20 * 15];
+        for method in [CornerMethod::Harris, CornerMethod::ShiTomasi] {
+            let r = corner_response(&img, 20, 15, 3, 3, method, 0.04, 255.0);
+            assert!(r.iter().all(|&v| v == 0.0));
+            assert!(select_corners(&r, 20, 15, 0.01, 1.0, 0).is_empty());
+        }
+    }
+
+    #[test]
+    fn tiny_images() {
+        for (w, h) in [(0, 0), (1, 1), (2, 1), (1, 5)] {
+            let img = vec![5.0f32; w * h];
+            for k in [1, 3, 5, 7] {
+                let r = corner_response(&img, w, h, 2, k, CornerMethod::Harris, 0.04, 255.0);
+                assert_eq!(r.len(), w * h);
+                assert!(r.iter().all(|v| v.is_finite()));
+            }
+        }
+    }
+
+    /// Antialiased checkerboard (16× supersampling): squares of `s` px, corner lattice at
+    /// `origin + (i, j)·s`, dark 40 / light 210.
+    fn checkerboard(w: usize, h: usize, s: f64, origin: (f64, f64)) -> Vec<f32> {
+        let mut img = vec![0.0f32; w * h];
+        let n = 16;
+        for y in 0..h {
+            for x in 0..w {
+                let mut acc = 0.0;
+                for sy in 0..n {
+                    for sx in 0..n {
+                        // Pixel (x, y) covers [x − 0.5, x + 0.5).
+                        let px = x as f64 - 0.5 + (sx as f64 + 0.5) / n as f64;
+                        let py = y as f64 - 0.5 + (sy as f64 + 0.5) / n as f64;
+                        let i = ((px - origin.0) / s).floor() as i64;
+                        let j = ((py - origin.1) / s).floor() as i64;
+                        acc += if (i + j).rem_euclid(2) == 0 {
+                            210.0
+                        } else {
+                            40.0
+                        };
+                    }
+                }
+                img[y * w + x] = (acc / (n * n) as f64) as f32;
+            }
+        }
+        img
+    }
+
+    #[test]
+    fn checkerboard_corners_subpixel_within_0_1_px() {
+        let (w, h, s) = (120, 100, 20.0);
+        let origin = (10.37, 9.71);
+        // A camera-like blur (σ = 1 px) on the antialiased board: cornerSubPix's estimate on a
+        // 1-px ramp is biased by ~0.1 px (OpenCV's too); on a smooth edge the bias is ~0.06 px.
+        let sharp = Image::from_f32(w, h, Channels::Gray, checkerboard(w, h, s, origin)).unwrap();
+        let blurred = crate::filter::gaussian::gaussian_blur(
+            &sharp,
+            1.0,
+            1.0,
+            0,
+            0,
+            BorderMode::Reflect101,
+            0.0,
+        );
+        let img = blurred.as_f32().unwrap().to_vec();
+        let r = corner_response(&img, w, h, 3, 3, CornerMethod::Harris, 0.04, 255.0);
+        let sel = select_corners(&r, w, h, 0.1, 10.0, 0);
+        let mut pts: Vec<(f64, f64)> = sel.iter().map(|&(x, y, _)| (x as f64, y as f64)).collect();
+        refine_corners(&img, w, h, &mut pts, 5, 40, 0.001);
+        // Interior lattice corners at least 8 px inside.
+        let mut checked = 0;
+        let mut worst = 0.0f64;
+        for i in 0..8 {
+            for j in 0..8 {
+                let tx = origin.0 + i as f64 * s;
+                let ty = origin.1 + j as f64 * s;
+                if tx < 8.0 || ty < 8.0 || tx > (w - 9) as f64 || ty > (h - 9) as f64 {
+                    continue;
+                }
+                let best = pts
+                    .iter()
+                    .map(|p| ((p.0 - tx).powi(2) + (p.1 - ty).powi(2)).sqrt())
+                    .fold(f64::INFINITY, f64::min);
+                worst = worst.max(best);
+                checked += 1;
+            }
+        }
+        assert!(checked >= 20, "{checked}");
+        assert!(worst < 0.1, "worst corner error {worst} px");
+    }
+
+    #[test]
+    fn selection_respects_distance_and_count() {
+        let (w, h) = (60, 50);
+        let img = checkerboard(w, h, 10.0, (5.5, 5.5));
+        let r = corner_response(&img, w, h, 3, 3, CornerMethod::ShiTomasi, 0.0, 255.0);
+        let sel = select_corners(&r, w, h, 0.01, 8.0, 0);
+        assert!(!sel.is_empty());
+        for (i, a) in sel.iter().enumerate() {
+            for b in &sel[i + 1..] {
+                let d2 = (a.0 as f64 - b.0 as f64).powi(2) + (a.1 as f64 - b.1 as f64).powi(2);
+                assert!(d2 >= 64.0);
+            }
+        }
+        assert!(sel.windows(2).all(|p| p[0].2 >= p[1].2));
+        assert_eq!(select_corners(&r, w, h, 0.01, 8.0, 3).len(), 3);
+    }
+
+    #[test]
+    fn same_result_with_one_thread() {
+        let img = checkerboard(90, 200, 13.0, (3.2, 4.9));
+        let many = corner_response(&img, 90, 200, 2, 3, CornerMethod::Harris, 0.04, 255.0);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        let one = pool
+            .install(|| corner_response(&img, 90, 200, 2, 3, CornerMethod::Harris, 0.04, 255.0));
+        assert_eq!(many, one);
+    }
+
+    fn run_op(params: CornersParams, image: Image) -> Result<Outputs, OpError> {
+        let op = Corners::new(params).map_err(OpError::failed)?;
+        let specs = Corners::inputs();
+        let values = vec![Some(Value::image(image))];
+        let inputs = Inputs::new(&specs, &values);
+        let ctx = RunContext {
+            node: "corners".into(),
+            threads: 1,
+            element: None,
+        };
+        op.run(&ctx, &inputs)
+    }
+
+    #[test]
+    fn operator_formats() {
+        let img = checkerboard(40, 40, 10.0, (5.5, 5.5));
+        let u8img = Image::from_u8(
+            40,
+            40,
+            Channels::Gray,
+            img.iter().map(|&v| v as u8).collect(),
+        )
+        .unwrap();
+        let mut out = run_op(CornersParams::default(), u8img).unwrap();
+        match out.take("keypoints") {
+            Some(Value::Keypoints(k)) => assert!(!k.is_empty()),
+            other => panic!("{other:?}"),
+        }
+        let rgb = Image::from_u8(2, 2, Channels::Rgb, vec![0; 12]).unwrap();
+        assert!(run_op(CornersParams::default(), rgb).is_err());
+        let empty = Image::from_f32(0, 0, Channels::Gray, vec![]).unwrap();
+        assert!(run_op(CornersParams::default(), empty).is_ok());
+        let one = Image::from_f32(1, 1, Channels::Gray, vec![1.0]).unwrap();
+        assert!(
+            run_op(
+                CornersParams {
+                    subpixel: true,
+                    ..CornersParams::default()
+                },
+                one
+            )
+            .is_ok()
+        );
+    }
+
+    #[test]
+    fn rejects_bad_params() {
+        let p = CornersParams::default();
+        assert!(
+            Corners::new(CornersParams {
+                ksize: 4,
+                ..p.clone()
+            })
+            .is_err()
+        );
+        assert!(
+            Corners::new(CornersParams {
+                k: f64::NAN,
+                ..p.clone()
+            })
+            .is_err()
+        );
+        assert!(
+            Corners::new(CornersParams {
+                quality_level: 0.0,
+                ..p.clone()
+            })
+            .is_err()
+        );
+        assert!(Corners::new(CornersParams { block_size: 0, ..p }).is_err());
+    }
+}

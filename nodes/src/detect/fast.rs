@@ -42,15 +42,26 @@ const CIRCLE: [(isize, isize); 16] = [
 /// `max over arcs of 9 of (min |v − p| over the arc, same sign)` − 1, floored at `t`... as
 /// OpenCV's `cornerScore<16>`: `max(t, best arc) − 1`. `d[k] = v − p_k`.
 fn score(d: &[i16; 16], threshold: i16) -> i16 {
+    // Circular sliding minima / maxima over 9 taps by doubling: 2, 4, 8, then 8 + 1.
+    let mut ext = [0i16; 32];
+    ext[..16].copy_from_slice(d);
+    ext[16..].copy_from_slice(d);
+    let mut lo2 = [0i16; 24];
+    let mut hi2 = [0i16; 24];
+    for k in 0..24 {
+        lo2[k] = ext[k].min(ext[k + 1]);
+        hi2[k] = ext[k].max(ext[k + 1]);
+    }
+    let mut lo4 = [0i16; 20];
+    let mut hi4 = [0i16; 20];
+    for k in 0..20 {
+        lo4[k] = lo2[k].min(lo2[k + 2]);
+        hi4[k] = hi2[k].max(hi2[k + 2]);
+    }
     let mut best = threshold;
     for k in 0..16 {
-        let mut lo = i16::MAX;
-        let mut hi = i16::MIN;
-        for j in 0..9 {
-            let v = d[(k + j) & 15];
-            lo = lo.min(v);
-            hi = hi.max(v);
-        }
+        let lo = lo4[k].min(lo4[k + 4]).min(ext[k + 8]);
+        let hi = hi4[k].max(hi4[k + 4]).max(ext[k + 8]);
         // Darker arc: all v − p ≥ lo; brighter arc: all p − v ≥ −hi.
         best = best.max(lo).max(-hi);
     }
@@ -86,59 +97,100 @@ fn has_arc(mask: u32) -> bool {
     m & 0xFFFF != 0 || (m >> 16) & 0xFFFF != 0
 }
 
-/// Scores of row `y` (corners > 0, others 0) for columns 3..width−3, into `scores` (width
-/// long). `flags` is scratch.
-fn score_row(img: &[u8], width: usize, y: usize, t: u8, scores: &mut [u8], flags: &mut [u8]) {
-    scores.fill(0);
+/// Scores of row `y` for columns 3..width−3 into `scores` (width long; non-corners 0) and the
+/// corner columns into `corners`. `scores` must be zero except at the columns `corners` held on
+/// entry (they are cleared first). `flags` is scratch.
+fn score_row(
+    img: &[u8],
+    width: usize,
+    y: usize,
+    t: u8,
+    scores: &mut [u8],
+    flags: &mut [u8],
+    corners: &mut Vec<usize>,
+) {
+    for &x in corners.iter() {
+        scores[x] = 0;
+    }
+    corners.clear();
     let n = width - 6;
     let at = |dy: isize, dx: isize| {
         let start = ((y as isize + dy) * width as isize + 3 + dx) as usize;
         &img[start..start + n]
     };
     let centre = at(0, 0);
-    let top = at(-3, 0);
-    let right = at(0, 3);
-    let bottom = at(3, 0);
-    let left = at(0, -3);
-    // Pass 1: compass test, branch-free over the row.
+    // The eight even circle pixels, clockwise from the top.
+    let even: [&[u8]; 8] = [
+        at(-3, 0),
+        at(-2, 2),
+        at(0, 3),
+        at(2, 2),
+        at(3, 0),
+        at(2, -2),
+        at(0, -3),
+        at(-2, -2),
+    ];
+    // Pass 1, branch-free over the row: an arc of 9 contiguous pixels contains at least 4
+    // cyclically consecutive even pixels, so both masks must have a run of 4.
     for (i, f) in flags[..n].iter_mut().enumerate() {
         let v = centre[i];
         let hi = v.saturating_add(t);
         let lo = v.saturating_sub(t);
-        let (a, b, c, d) = (top[i], right[i], bottom[i], left[i]);
-        let ba = (a > hi) as u8;
-        let bb = (b > hi) as u8;
-        let bc = (c > hi) as u8;
-        let bd = (d > hi) as u8;
-        let da = (a < lo) as u8;
-        let db = (b < lo) as u8;
-        let dc = (c < lo) as u8;
-        let dd = (d < lo) as u8;
-        *f = (ba & bb)
-            | (bb & bc)
-            | (bc & bd)
-            | (bd & ba)
-            | (da & db)
-            | (db & dc)
-            | (dc & dd)
-            | (dd & da);
+        let mut b = [0u8; 8];
+        let mut d = [0u8; 8];
+        for k in 0..8 {
+            let p = even[k][i];
+            b[k] = u8::from(p > hi);
+            d[k] = u8::from(p < lo);
+        }
+        let run4 = |e: &[u8; 8]| {
+            let pair = [
+                e[0] & e[1],
+                e[1] & e[2],
+                e[2] & e[3],
+                e[3] & e[4],
+                e[4] & e[5],
+                e[5] & e[6],
+                e[6] & e[7],
+                e[7] & e[0],
+            ];
+            (pair[0] & pair[2])
+                | (pair[1] & pair[3])
+                | (pair[2] & pair[4])
+                | (pair[3] & pair[5])
+                | (pair[4] & pair[6])
+                | (pair[5] & pair[7])
+                | (pair[6] & pair[0])
+                | (pair[7] & pair[1])
+        };
+        *f = run4(&b) | run4(&d);
     }
     // Pass 2: full test on the candidates.
     let ti = i16::from(t);
     let offsets: [isize; 16] = CIRCLE.map(|(dx, dy)| dy * width as isize + dx);
-    for (i, &f) in flags[..n].iter().enumerate() {
-        if f == 0 {
+    for (chunk_index, chunk) in flags[..n].chunks(8).enumerate() {
+        let any = match <[u8; 8]>::try_from(chunk) {
+            Ok(bytes) => u64::from_ne_bytes(bytes) != 0,
+            Err(_) => chunk.iter().any(|&f| f != 0),
+        };
+        if !any {
             continue;
         }
-        let x = i + 3;
-        let p = y * width + x;
-        let v = i16::from(img[p]);
-        let mut d = [0i16; 16];
-        for (dk, &o) in d.iter_mut().zip(&offsets) {
-            *dk = v - i16::from(img[(p as isize + o) as usize]);
-        }
-        if is_corner(&d, ti) {
-            scores[x] = score(&d, ti).clamp(0, 255) as u8;
+        for (j, &f) in chunk.iter().enumerate() {
+            if f == 0 {
+                continue;
+            }
+            let x = chunk_index * 8 + j + 3;
+            let p = y * width + x;
+            let v = i16::from(img[p]);
+            let mut d = [0i16; 16];
+            for (dk, &o) in d.iter_mut().zip(&offsets) {
+                *dk = v - i16::from(img[(p as isize + o) as usize]);
+            }
+            if is_corner(&d, ti) {
+                scores[x] = score(&d, ti).clamp(0, 255) as u8;
+                corners.push(x);
+            }
         }
     }
 }
@@ -170,45 +222,41 @@ pub fn fast9(
             let mut out = Vec::new();
             if !nonmax {
                 let mut scores = vec![0u8; width];
+                let mut corners = Vec::new();
                 for y in y0..y1 {
-                    score_row(img, width, y, t, &mut scores, &mut flags);
-                    for (x, &s) in scores.iter().enumerate() {
-                        if s > 0 || is_corner_at(img, width, x, y, t, s) {
-                            out.push((x, y, s));
-                        }
-                    }
+                    score_row(img, width, y, t, &mut scores, &mut flags, &mut corners);
+                    out.extend(corners.iter().map(|&x| (x, y, scores[x])));
                 }
                 return out;
             }
-            // Ring of three score rows: y−1, y, y+1 (rows outside first..last are zero).
+            // Ring of three score rows: y−1, y, y+1 (rows outside first..last are zero), with
+            // the corner columns of each.
             let mut ring = [vec![0u8; width], vec![0u8; width], vec![0u8; width]];
-            let mut corner_rows = [vec![false; width], vec![false; width], vec![false; width]];
-            let mut fill = |row: &mut Vec<u8>, is: &mut Vec<bool>, y: usize| {
-                if y >= first && y < last {
-                    score_row(img, width, y, t, row, &mut flags);
-                    mark_corners(img, width, y, t, row, is);
-                } else {
-                    row.fill(0);
-                    is.fill(false);
+            let mut cols: [Vec<usize>; 3] = [Vec::new(), Vec::new(), Vec::new()];
+            for (slot, y) in [(0, y0 - 1), (1, y0)] {
+                if y >= first {
+                    score_row(
+                        img,
+                        width,
+                        y,
+                        t,
+                        &mut ring[slot],
+                        &mut flags,
+                        &mut cols[slot],
+                    );
                 }
-            };
-            {
-                let (r0, r1) = ring.split_at_mut(1);
-                let (c0, c1) = corner_rows.split_at_mut(1);
-                fill(&mut r0[0], &mut c0[0], y0 - 1);
-                fill(&mut r1[0], &mut c1[0], y0);
             }
             for y in y0..y1 {
-                {
-                    let (r, c) = (&mut ring[2], &mut corner_rows[2]);
-                    fill(r, c, y + 1);
+                if y + 1 < last {
+                    score_row(img, width, y + 1, t, &mut ring[2], &mut flags, &mut cols[2]);
+                } else {
+                    for &x in &cols[2] {
+                        ring[2][x] = 0;
+                    }
+                    cols[2].clear();
                 }
                 let (prev, curr, next) = (&ring[0], &ring[1], &ring[2]);
-                let is = &corner_rows[1];
-                for x in 3..width - 3 {
-                    if !is[x] {
-                        continue;
-                    }
+                for &x in &cols[1] {
                     let s = curr[x];
                     if s > curr[x - 1]
                         && s > curr[x + 1]
@@ -223,38 +271,12 @@ pub fn fast9(
                     }
                 }
                 ring.rotate_left(1);
-                corner_rows.rotate_left(1);
+                cols.rotate_left(1);
             }
             out
         })
         .flatten()
         .collect()
-}
-
-/// Marks the corners of row `y`: score > 0, or score 0 corners (possible only with `t` = 0).
-fn mark_corners(img: &[u8], width: usize, y: usize, t: u8, scores: &[u8], is: &mut [bool]) {
-    for (x, (c, &s)) in is.iter_mut().zip(scores).enumerate() {
-        *c = s > 0 || is_corner_at(img, width, x, y, t, s);
-    }
-}
-
-/// The full corner test at (x, y) for pixels scored 0 (only needed when `t` = 0, where a corner
-/// can score 0). Pixels with a positive score are corners.
-fn is_corner_at(img: &[u8], width: usize, x: usize, y: usize, t: u8, s: u8) -> bool {
-    if s > 0 {
-        return true;
-    }
-    if t > 0 || x < 3 || x + 3 >= width {
-        return false;
-    }
-    let p = y * width + x;
-    let v = i16::from(img[p]);
-    let mut d = [0i16; 16];
-    for (dk, &(dx, dy)) in d.iter_mut().zip(&CIRCLE) {
-        let q = (p as isize + dy * width as isize + dx) as usize;
-        *dk = v - i16::from(img[q]);
-    }
-    is_corner(&d, 0)
 }
 
 params! {
@@ -361,5 +383,152 @@ impl Operator for Fast {
             })
             .collect();
         Ok(Outputs::new().with("keypoints", Value::Keypoints(keypoints.into())))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::filter::test_support::random_u8;
+
+    /// Direct reference: full test and score (largest t' with the point still a corner, by
+    /// trying every t') at every pixel, then NMS against the 8 neighbours.
+    fn reference(img: &[u8], w: usize, h: usize, t: u8, nonmax: bool) -> Vec<(usize, usize, u8)> {
+        let corner_at = |x: usize, y: usize, t: i32| {
+            let v = i32::from(img[y * w + x]);
+            let ring: Vec<i32> = CIRCLE
+                .iter()
+                .map(|&(dx, dy)| {
+                    i32::from(img[(y as isize + dy) as usize * w + (x as isize + dx) as usize])
+                })
+                .collect();
+            (0..16).any(|k| {
+                (0..9).all(|j| ring[(k + j) % 16] > v + t)
+                    || (0..9).all(|j| ring[(k + j) % 16] < v - t)
+            })
+        };
+        let mut score = vec![0i32; w * h];
+        let mut is = vec![false; w * h];
+        for y in 3..h.saturating_sub(3) {
+            for x in 3..w.saturating_sub(3) {
+                if corner_at(x, y, i32::from(t)) {
+                    is[y * w + x] = true;
+                    let mut s = i32::from(t);
+                    while corner_at(x, y, s + 1) {
+                        s += 1;
+                    }
+                    score[y * w + x] = s;
+                }
+            }
+        }
+        let mut out = Vec::new();
+        for y in 3..h.saturating_sub(3) {
+            for x in 3..w.saturating_sub(3) {
+                if !is[y * w + x] {
+                    continue;
+                }
+                let s = score[y * w + x];
+                let keep = !nonmax
+                    || [
+                        (-1, -1),
+                        (0, -1),
+                        (1, -1),
+                        (-1, 0),
+                        (1, 0),
+                        (-1, 1),
+                        (0, 1),
+                        (1, 1),
+                    ]
+                    .iter()
+                    .all(|&(dx, dy)| {
+                        s > score[(y as isize + dy) as usize * w + (x as isize + dx) as usize]
+                    });
+                if keep {
+                    out.push((x, y, s as u8));
+                }
+            }
+        }
+        out
+    }
+
+    fn blocks(w: usize, h: usize, seed: u64) -> Vec<u8> {
+        // Random 4×4 blocks: many corners of all scores.
+        let noise = random_u8(w.div_ceil(4), h.div_ceil(4), Channels::Gray, seed);
+        let n = noise.as_u8().unwrap();
+        let bw = w.div_ceil(4);
+        (0..w * h)
+            .map(|i| n[(i / w / 4) * bw + (i % w) / 4])
+            .collect()
+    }
+
+    #[test]
+    fn matches_reference_on_random_images() {
+        for (seed, t) in [(1u64, 20u8), (2, 5), (3, 60), (4, 0)] {
+            let (w, h) = (77, 150);
+            for img in [
+                blocks(w, h, seed),
+                random_u8(w, h, Channels::Gray, seed)
+                    .as_u8()
+                    .unwrap()
+                    .to_vec(),
+            ] {
+                for nonmax in [false, true] {
+                    assert_eq!(
+                        fast9(&img, w, h, t, nonmax),
+                        reference(&img, w, h, t, nonmax)
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn single_bright_dot() {
+        let (w, h) = (15, 15);
+        let mut img = vec![10u8; w * h];
+        img[7 * w + 7] = 200;
+        // Score: the largest t' with 190 > t', i.e. 189.
+        assert_eq!(fast9(&img, w, h, 20, true), vec![(7, 7, 189)]);
+        assert_eq!(fast9(&img, w, h, 190, true), vec![]);
+    }
+
+    #[test]
+    fn small_and_constant_images() {
+        for (w, h) in [(0, 0), (1, 1), (6, 6), (7, 7), (7, 100)] {
+            assert!(fast9(&vec![9u8; w * h], w, h, 10, true).is_empty());
+        }
+    }
+
+    #[test]
+    fn deterministic_across_threads() {
+        let (w, h) = (200, 300);
+        let img = blocks(w, h, 9);
+        let many = fast9(&img, w, h, 10, true);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        assert_eq!(pool.install(|| fast9(&img, w, h, 10, true)), many);
+    }
+
+    #[test]
+    fn rejects_non_gray_u8() {
+        let op = Fast::new(FastParams::default()).unwrap();
+        let specs = Fast::inputs();
+        let ctx = RunContext {
+            node: "fast".into(),
+            threads: 1,
+            element: None,
+        };
+        let rgb = ocellus_engine::value::Image::from_u8(8, 8, Channels::Rgb, vec![0; 192]).unwrap();
+        let values = vec![Some(Value::image(rgb))];
+        assert!(op.run(&ctx, &Inputs::new(&specs, &values)).is_err());
+        assert!(
+            Fast::new(FastParams {
+                threshold: 256,
+                ..FastParams::default()
+            })
+            .is_err()
+        );
     }
 }
