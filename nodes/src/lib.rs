@@ -64,6 +64,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<detect::canny::Canny>()?;
     registry.register::<detect::corners::Corners>()?;
     registry.register::<detect::fast::Fast>()?;
+    registry.register::<detect::hough::HoughLines>()?;
+    registry.register::<detect::hough::HoughSegments>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<filter::threshold::Threshold>()?;

@@ -42,6 +42,7 @@ param_enum! {
     }
 }
 
+#[allow(clippy::derivable_impls)]
 impl Default for CornerMethod {
     fn default() -> Self {
         CornerMethod::Harris
@@ -152,6 +153,7 @@ impl DerivRows {
 ///
 /// `range` is the sample range the derivatives are divided by (255 for 8-bit data). `ksize` is
 /// 1, 3, 5 or 7, `block_size` ≥ 1. Bit-identical for any thread count.
+#[allow(clippy::too_many_arguments)]
 pub fn corner_response(
     src: &[f32],
     width: usize,
@@ -686,6 +688,7 @@ mod tests {
     }
 
     #[test]
+    #[allow(clippy::excessive_precision)]
     fn harris_matches_opencv_small() {
         // cv2.cornerHarris(a, 2, 3, 0.04)[3, :] with a[i] = (37 i) mod 251, 8×8 u8.
         let r = corner_response(&small(), 8, 8, 2, 3, CornerMethod::Harris, 0.04, 255.0);
@@ -703,6 +706,7 @@ mod tests {
     }
 
     #[test]
+    #[allow(clippy::excessive_precision)]
     fn min_eigen_matches_opencv_small() {
         // cv2.cornerMinEigenVal(a, 3, 3)[4, :].
         let r = corner_response(&small(), 8, 8, 3, 3, CornerMethod::ShiTomasi, 0.0, 255.0);
