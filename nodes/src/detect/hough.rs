@@ -241,7 +241,7 @@ impl SplitMix {
 
     /// Uniform in 0..n (n > 0), by rejection-free multiply-shift (bias < 2^-32 for n < 2^32).
     fn below(&mut self, n: usize) -> usize {
-        ((self.next() >> 32) * n as u64 >> 32) as usize
+        (((self.next() >> 32) * n as u64) >> 32) as usize
     }
 }
 

@@ -4,3 +4,4 @@ pub mod canny;
 pub mod corners;
 pub mod fast;
 pub mod hough;
+pub mod template;
