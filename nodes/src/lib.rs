@@ -69,6 +69,11 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<detect::qr::QrFinder>()?;
     registry.register::<detect::chessboard::Chessboard>()?;
     registry.register::<detect::marker::Aruco>()?;
+    registry.register::<detect::corners::Corners>()?;
+    registry.register::<detect::fast::Fast>()?;
+    registry.register::<detect::hough::HoughLines>()?;
+    registry.register::<detect::hough::HoughSegments>()?;
+    registry.register::<detect::template::TemplateMatch>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<analyze::evaluate::Evaluate>()?;

@@ -2,7 +2,11 @@
 
 pub mod canny;
 pub mod chessboard;
+pub mod corners;
+pub mod fast;
 pub mod gray;
+pub mod hough;
 pub mod marker;
 pub mod mser;
 pub mod qr;
+pub mod template;

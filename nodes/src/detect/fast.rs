@@ -1,0 +1,534 @@
+//! `detect.fast`: the FAST-9 corner detector (16-pixel circle), compatible with OpenCV's
+//! `FastFeatureDetector` (`TYPE_9_16`).
+//!
+//! [`fast9`] scans each row in two passes: a branch-free, vectorizable pass that keeps only
+//! pixels where two adjacent compass points (of the four at distance 3) are both brighter than
+//! `v + t` or both darker than `v − t` (necessary for any arc of 9), then the full arc test and
+//! the score on those few candidates. Scores go to a small per-band buffer and non-maximum
+//! suppression compares each corner with its 8 neighbours. Bands of [`BAND_ROWS`] rows run in
+//! parallel and recompute the score rows just outside them, so the result does not depend on the
+//! thread count.
+
+use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
+use ocellus_engine::params;
+use ocellus_engine::types::PortType;
+use ocellus_engine::value::{Channels, Keypoint, Value};
+use rayon::prelude::*;
+
+/// Rows per parallel band.
+const BAND_ROWS: usize = 64;
+
+/// Circle offsets (dx, dy), clockwise from the top, as OpenCV's pattern for 16 pixels.
+const CIRCLE: [(isize, isize); 16] = [
+    (0, -3),
+    (1, -3),
+    (2, -2),
+    (3, -1),
+    (3, 0),
+    (3, 1),
+    (2, 2),
+    (1, 3),
+    (0, 3),
+    (-1, 3),
+    (-2, 2),
+    (-3, 1),
+    (-3, 0),
+    (-3, -1),
+    (-2, -2),
+    (-1, -3),
+];
+
+/// Score of a corner: the largest `t'` for which it is still a corner (strict comparisons), i.e.
+/// `max over arcs of 9 of (min |v − p| over the arc, same sign)` − 1, floored at `t`... as
+/// OpenCV's `cornerScore<16>`: `max(t, best arc) − 1`. `d[k] = v − p_k`.
+fn score(d: &[i16; 16], threshold: i16) -> i16 {
+    // Circular sliding minima / maxima over 9 taps by doubling: 2, 4, 8, then 8 + 1.
+    let mut ext = [0i16; 32];
+    ext[..16].copy_from_slice(d);
+    ext[16..].copy_from_slice(d);
+    let mut lo2 = [0i16; 24];
+    let mut hi2 = [0i16; 24];
+    for k in 0..24 {
+        lo2[k] = ext[k].min(ext[k + 1]);
+        hi2[k] = ext[k].max(ext[k + 1]);
+    }
+    let mut lo4 = [0i16; 20];
+    let mut hi4 = [0i16; 20];
+    for k in 0..20 {
+        lo4[k] = lo2[k].min(lo2[k + 2]);
+        hi4[k] = hi2[k].max(hi2[k + 2]);
+    }
+    let mut best = threshold;
+    for k in 0..16 {
+        let lo = lo4[k].min(lo4[k + 4]).min(ext[k + 8]);
+        let hi = hi4[k].max(hi4[k + 4]).max(ext[k + 8]);
+        // Darker arc: all v − p ≥ lo; brighter arc: all p − v ≥ −hi.
+        best = best.max(lo).max(-hi);
+    }
+    best - 1
+}
+
+/// True when 9 contiguous circle pixels are all `> v + t` or all `< v − t`.
+fn is_corner(d: &[i16; 16], t: i16) -> bool {
+    let mut bright = 0u32;
+    let mut dark = 0u32;
+    for (k, &v) in d.iter().enumerate() {
+        // d = v − p: p brighter ⇔ d < −t.
+        if v < -t {
+            bright |= 1 << k;
+        }
+        if v > t {
+            dark |= 1 << k;
+        }
+    }
+    has_arc(bright) || has_arc(dark)
+}
+
+/// Whether the 16-bit circular mask has 9 consecutive set bits.
+fn has_arc(mask: u32) -> bool {
+    if mask.count_ones() < 9 {
+        return false;
+    }
+    let doubled = mask | (mask << 16);
+    let mut m = doubled;
+    for _ in 1..9 {
+        m &= m >> 1;
+    }
+    m & 0xFFFF != 0 || (m >> 16) & 0xFFFF != 0
+}
+
+/// Scores of row `y` for columns 3..width−3 into `scores` (width long; non-corners 0) and the
+/// corner columns into `corners`. `scores` must be zero except at the columns `corners` held on
+/// entry (they are cleared first). `flags` is scratch.
+fn score_row(
+    img: &[u8],
+    width: usize,
+    y: usize,
+    t: u8,
+    scores: &mut [u8],
+    flags: &mut [u8],
+    corners: &mut Vec<usize>,
+) {
+    for &x in corners.iter() {
+        scores[x] = 0;
+    }
+    corners.clear();
+    let n = width - 6;
+    let at = |dy: isize, dx: isize| {
+        let start = ((y as isize + dy) * width as isize + 3 + dx) as usize;
+        &img[start..start + n]
+    };
+    let centre = at(0, 0);
+    // The eight even circle pixels, clockwise from the top.
+    let even: [&[u8]; 8] = [
+        at(-3, 0),
+        at(-2, 2),
+        at(0, 3),
+        at(2, 2),
+        at(3, 0),
+        at(2, -2),
+        at(0, -3),
+        at(-2, -2),
+    ];
+    // Pass 1, branch-free over the row: an arc of 9 contiguous pixels contains at least 4
+    // cyclically consecutive even pixels, so both masks must have a run of 4.
+    for (i, f) in flags[..n].iter_mut().enumerate() {
+        let v = centre[i];
+        let hi = v.saturating_add(t);
+        let lo = v.saturating_sub(t);
+        let mut b = [0u8; 8];
+        let mut d = [0u8; 8];
+        for k in 0..8 {
+            let p = even[k][i];
+            b[k] = u8::from(p > hi);
+            d[k] = u8::from(p < lo);
+        }
+        let run4 = |e: &[u8; 8]| {
+            let pair = [
+                e[0] & e[1],
+                e[1] & e[2],
+                e[2] & e[3],
+                e[3] & e[4],
+                e[4] & e[5],
+                e[5] & e[6],
+                e[6] & e[7],
+                e[7] & e[0],
+            ];
+            (pair[0] & pair[2])
+                | (pair[1] & pair[3])
+                | (pair[2] & pair[4])
+                | (pair[3] & pair[5])
+                | (pair[4] & pair[6])
+                | (pair[5] & pair[7])
+                | (pair[6] & pair[0])
+                | (pair[7] & pair[1])
+        };
+        *f = run4(&b) | run4(&d);
+    }
+    // Pass 2: full test on the candidates.
+    let ti = i16::from(t);
+    let offsets: [isize; 16] = CIRCLE.map(|(dx, dy)| dy * width as isize + dx);
+    for (chunk_index, chunk) in flags[..n].chunks(8).enumerate() {
+        let any = match <[u8; 8]>::try_from(chunk) {
+            Ok(bytes) => u64::from_ne_bytes(bytes) != 0,
+            Err(_) => chunk.iter().any(|&f| f != 0),
+        };
+        if !any {
+            continue;
+        }
+        for (j, &f) in chunk.iter().enumerate() {
+            if f == 0 {
+                continue;
+            }
+            let x = chunk_index * 8 + j + 3;
+            let p = y * width + x;
+            let v = i16::from(img[p]);
+            let mut d = [0i16; 16];
+            for (dk, &o) in d.iter_mut().zip(&offsets) {
+                *dk = v - i16::from(img[(p as isize + o) as usize]);
+            }
+            if is_corner(&d, ti) {
+                scores[x] = score(&d, ti).clamp(0, 255) as u8;
+                corners.push(x);
+            }
+        }
+    }
+}
+
+/// FAST-9 corners of a gray 8-bit image (`width × height`, row-major): pixels at least 3 px
+/// from the border with 9 contiguous pixels of the radius-3 circle all brighter than `v + t` or
+/// all darker than `v − t`. With `nonmax`, a corner is kept only if its score (the largest
+/// threshold at which it is still a corner, OpenCV's) is strictly greater than the scores of its
+/// 8 neighbours (non-corners score 0). Returns `(x, y, score)` in raster order.
+pub fn fast9(
+    img: &[u8],
+    width: usize,
+    height: usize,
+    t: u8,
+    nonmax: bool,
+) -> Vec<(usize, usize, u8)> {
+    if width < 7 || height < 7 || img.len() != width * height {
+        return Vec::new();
+    }
+    let first = 3;
+    let last = height - 3; // exclusive
+    let bands = (last - first).div_ceil(BAND_ROWS);
+    (0..bands)
+        .into_par_iter()
+        .map(|b| {
+            let y0 = first + b * BAND_ROWS;
+            let y1 = (y0 + BAND_ROWS).min(last);
+            let mut flags = vec![0u8; width];
+            let mut out = Vec::new();
+            if !nonmax {
+                let mut scores = vec![0u8; width];
+                let mut corners = Vec::new();
+                for y in y0..y1 {
+                    score_row(img, width, y, t, &mut scores, &mut flags, &mut corners);
+                    out.extend(corners.iter().map(|&x| (x, y, scores[x])));
+                }
+                return out;
+            }
+            // Ring of three score rows: y−1, y, y+1 (rows outside first..last are zero), with
+            // the corner columns of each.
+            let mut ring = [vec![0u8; width], vec![0u8; width], vec![0u8; width]];
+            let mut cols: [Vec<usize>; 3] = [Vec::new(), Vec::new(), Vec::new()];
+            for (slot, y) in [(0, y0 - 1), (1, y0)] {
+                if y >= first {
+                    score_row(
+                        img,
+                        width,
+                        y,
+                        t,
+                        &mut ring[slot],
+                        &mut flags,
+                        &mut cols[slot],
+                    );
+                }
+            }
+            for y in y0..y1 {
+                if y + 1 < last {
+                    score_row(img, width, y + 1, t, &mut ring[2], &mut flags, &mut cols[2]);
+                } else {
+                    for &x in &cols[2] {
+                        ring[2][x] = 0;
+                    }
+                    cols[2].clear();
+                }
+                let (prev, curr, next) = (&ring[0], &ring[1], &ring[2]);
+                for &x in &cols[1] {
+                    let s = curr[x];
+                    if s > curr[x - 1]
+                        && s > curr[x + 1]
+                        && s > prev[x - 1]
+                        && s > prev[x]
+                        && s > prev[x + 1]
+                        && s > next[x - 1]
+                        && s > next[x]
+                        && s > next[x + 1]
+                    {
+                        out.push((x, y, s));
+                    }
+                }
+                ring.rotate_left(1);
+                cols.rotate_left(1);
+            }
+            out
+        })
+        .flatten()
+        .collect()
+}
+
+params! {
+    /// Parameters of `detect.fast`.
+    pub struct FastParams {
+        /// Intensity threshold t (gray levels, 0..=255, default 20): circle pixels must be
+        /// brighter than v + t or darker than v − t.
+        threshold: u32 = 20,
+        /// Keep only corners whose score beats all 8 neighbours (default true).
+        nonmax_suppression: bool = true,
+    }
+}
+
+/// FAST-9 detector (`detect.fast`). See [`fast9`].
+#[derive(Debug, Clone)]
+pub struct Fast {
+    threshold: u8,
+    nonmax: bool,
+}
+
+impl Op for Fast {
+    type Params = FastParams;
+    const ID: &'static str = "detect.fast";
+    const SUMMARY: &'static str = "FAST-9 corner detector (16-pixel circle), OpenCV-compatible.";
+    const DOC: &'static str = r#"
+Features from Accelerated Segment Test: a pixel of value v (at least 3 px from the border) is a
+corner when 9 contiguous pixels of the 16-pixel Bresenham circle of radius 3 are all > v + t or
+all < v − t. Its score is the largest threshold at which it is still a corner (OpenCV's
+`cornerScore<16>`: max over 9-arcs of the smallest |v − p| on the arc, minus 1). With
+`nonmax_suppression`, a corner is kept only if its score is strictly greater than the scores of
+its 8 neighbours (non-corners score 0).
+
+Speed: each row is first screened branch-free with the four compass pixels (an arc of 9 always
+contains two adjacent compass points), then candidates get the full test.
+
+Keypoints come in raster order with size 7, angle −1, response = score, octave 0, matching
+`cv::FastFeatureDetector::create(t, nonmax, TYPE_9_16)`. Gray u8 only.
+
+References: E. Rosten, T. Drummond, "Machine learning for high-speed corner detection",
+ECCV 2006; OpenCV features2d/src/fast.cpp.
+
+Example:
+    "fast": (op: "detect.fast", inputs: { "image": "gray.image" }, params: (threshold: 20)),
+"#;
+
+    fn inputs() -> Vec<PortSpec> {
+        vec![PortSpec::new("image", PortType::Image, "Gray u8 image.")]
+    }
+
+    fn outputs() -> Vec<PortSpec> {
+        vec![PortSpec::new(
+            "keypoints",
+            PortType::Keypoints,
+            "FAST corners, raster order.",
+        )]
+    }
+
+    fn new(params: FastParams) -> Result<Self, String> {
+        if params.threshold > 255 {
+            return Err(format!(
+                "`threshold` must be between 0 and 255, got {}",
+                params.threshold
+            ));
+        }
+        Ok(Fast {
+            threshold: params.threshold as u8,
+            nonmax: params.nonmax_suppression,
+        })
+    }
+}
+
+impl Operator for Fast {
+    fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
+        let image = inputs.image("image")?;
+        let gray = match (image.channels(), image.as_u8()) {
+            (Channels::Gray, Some(s)) => s,
+            _ => {
+                return Err(OpError::input(
+                    "image",
+                    format!(
+                        "detect.fast needs a gray_u8 image, got {}; convert with \
+                         filter.grayscale / filter.convert first",
+                        image.format()
+                    ),
+                ));
+            }
+        };
+        let found = fast9(
+            gray,
+            image.width(),
+            image.height(),
+            self.threshold,
+            self.nonmax,
+        );
+        let keypoints: Vec<Keypoint> = found
+            .into_iter()
+            .map(|(x, y, s)| Keypoint {
+                x: x as f32,
+                y: y as f32,
+                size: 7.0,
+                angle: -1.0,
+                response: f32::from(s),
+                octave: 0,
+            })
+            .collect();
+        Ok(Outputs::new().with("keypoints", Value::Keypoints(keypoints.into())))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::filter::test_support::random_u8;
+
+    /// Direct reference: full test and score (largest t' with the point still a corner, by
+    /// trying every t') at every pixel, then NMS against the 8 neighbours.
+    fn reference(img: &[u8], w: usize, h: usize, t: u8, nonmax: bool) -> Vec<(usize, usize, u8)> {
+        let corner_at = |x: usize, y: usize, t: i32| {
+            let v = i32::from(img[y * w + x]);
+            let ring: Vec<i32> = CIRCLE
+                .iter()
+                .map(|&(dx, dy)| {
+                    i32::from(img[(y as isize + dy) as usize * w + (x as isize + dx) as usize])
+                })
+                .collect();
+            (0..16).any(|k| {
+                (0..9).all(|j| ring[(k + j) % 16] > v + t)
+                    || (0..9).all(|j| ring[(k + j) % 16] < v - t)
+            })
+        };
+        let mut score = vec![0i32; w * h];
+        let mut is = vec![false; w * h];
+        for y in 3..h.saturating_sub(3) {
+            for x in 3..w.saturating_sub(3) {
+                if corner_at(x, y, i32::from(t)) {
+                    is[y * w + x] = true;
+                    let mut s = i32::from(t);
+                    while corner_at(x, y, s + 1) {
+                        s += 1;
+                    }
+                    score[y * w + x] = s;
+                }
+            }
+        }
+        let mut out = Vec::new();
+        for y in 3..h.saturating_sub(3) {
+            for x in 3..w.saturating_sub(3) {
+                if !is[y * w + x] {
+                    continue;
+                }
+                let s = score[y * w + x];
+                let keep = !nonmax
+                    || [
+                        (-1, -1),
+                        (0, -1),
+                        (1, -1),
+                        (-1, 0),
+                        (1, 0),
+                        (-1, 1),
+                        (0, 1),
+                        (1, 1),
+                    ]
+                    .iter()
+                    .all(|&(dx, dy)| {
+                        s > score[(y as isize + dy) as usize * w + (x as isize + dx) as usize]
+                    });
+                if keep {
+                    out.push((x, y, s as u8));
+                }
+            }
+        }
+        out
+    }
+
+    fn blocks(w: usize, h: usize, seed: u64) -> Vec<u8> {
+        // Random 4×4 blocks: many corners of all scores.
+        let noise = random_u8(w.div_ceil(4), h.div_ceil(4), Channels::Gray, seed);
+        let n = noise.as_u8().unwrap();
+        let bw = w.div_ceil(4);
+        (0..w * h)
+            .map(|i| n[(i / w / 4) * bw + (i % w) / 4])
+            .collect()
+    }
+
+    #[test]
+    fn matches_reference_on_random_images() {
+        for (seed, t) in [(1u64, 20u8), (2, 5), (3, 60), (4, 0)] {
+            let (w, h) = (77, 150);
+            for img in [
+                blocks(w, h, seed),
+                random_u8(w, h, Channels::Gray, seed)
+                    .as_u8()
+                    .unwrap()
+                    .to_vec(),
+            ] {
+                for nonmax in [false, true] {
+                    assert_eq!(
+                        fast9(&img, w, h, t, nonmax),
+                        reference(&img, w, h, t, nonmax)
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn single_bright_dot() {
+        let (w, h) = (15, 15);
+        let mut img = vec![10u8; w * h];
+        img[7 * w + 7] = 200;
+        // Score: the largest t' with 190 > t', i.e. 189.
+        assert_eq!(fast9(&img, w, h, 20, true), vec![(7, 7, 189)]);
+        assert_eq!(fast9(&img, w, h, 190, true), vec![]);
+    }
+
+    #[test]
+    fn small_and_constant_images() {
+        for (w, h) in [(0, 0), (1, 1), (6, 6), (7, 7), (7, 100)] {
+            assert!(fast9(&vec![9u8; w * h], w, h, 10, true).is_empty());
+        }
+    }
+
+    #[test]
+    fn deterministic_across_threads() {
+        let (w, h) = (200, 300);
+        let img = blocks(w, h, 9);
+        let many = fast9(&img, w, h, 10, true);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        assert_eq!(pool.install(|| fast9(&img, w, h, 10, true)), many);
+    }
+
+    #[test]
+    fn rejects_non_gray_u8() {
+        let op = Fast::new(FastParams::default()).unwrap();
+        let specs = Fast::inputs();
+        let ctx = RunContext {
+            node: "fast".into(),
+            threads: 1,
+            element: None,
+        };
+        let rgb = ocellus_engine::value::Image::from_u8(8, 8, Channels::Rgb, vec![0; 192]).unwrap();
+        let values = vec![Some(Value::image(rgb))];
+        assert!(op.run(&ctx, &Inputs::new(&specs, &values)).is_err());
+        assert!(
+            Fast::new(FastParams {
+                threshold: 256,
+                ..FastParams::default()
+            })
+            .is_err()
+        );
+    }
+}
