@@ -8,7 +8,13 @@ mod common;
 use common::{example_graphs, files_below, ocellus, root, stderr, temp_dir};
 
 /// Graphs with a snapshot test below; a new graph must be added here.
-const SNAPSHOTTED: &[&str] = &["edges.ron", "filters.ron", "two_branches.ron"];
+const SNAPSHOTTED: &[&str] = &[
+    "edges.ron",
+    "filters.ron",
+    "lines.ron",
+    "segment.ron",
+    "two_branches.ron",
+];
 
 fn summary(graph: &str, threads: usize) -> String {
     let registry = ocellus_nodes::builtin_registry().unwrap();
@@ -37,6 +43,16 @@ fn edges() {
 #[test]
 fn filters() {
     check_graph("filters.ron");
+}
+
+#[test]
+fn lines() {
+    check_graph("lines.ron");
+}
+
+#[test]
+fn segment() {
+    check_graph("segment.ron");
 }
 
 #[test]

@@ -161,11 +161,11 @@ pub fn moving_shapes(scene: &MovingScene) -> Result<(Vec<Image>, Vec<Image>), St
                     .any(|&[bx, by]| cx >= bx && cx < bx + size && cy >= by && cy < by + size);
                 mask.push(if covered { 255u8 } else { 0 });
                 let i = ((t * h + y) * w + x) as u64;
-                for ch in 0..c {
+                for (ch, &square) in SQUARE_LEVELS.iter().enumerate().take(c) {
                     let clean = if ch == 3 {
                         255.0
                     } else if covered {
-                        SQUARE_LEVELS[ch]
+                        square
                     } else {
                         background(x as f64, y as f64, ch)
                     };
