@@ -24,6 +24,7 @@ use std::time::{Duration, Instant};
 use ocellus_engine::image_io::{DecodeLimits, read_image};
 use ocellus_engine::value::{Channels, Depth, Image, PixelFormat};
 use ocellus_nodes::capture::pattern::{Drawing, render};
+use ocellus_nodes::detect::canny::canny;
 use ocellus_nodes::filter::bilateral::{bilateral_filter, radius_for};
 use ocellus_nodes::filter::border::BorderMode;
 use ocellus_nodes::filter::box_filter::box_filter;
@@ -40,6 +41,7 @@ use ocellus_nodes::filter::pyramid::pyr_down;
 use ocellus_nodes::filter::resize::{Interpolation, Target, resize};
 use ocellus_nodes::filter::sobel::sobel;
 use ocellus_nodes::filter::threshold::{ThresholdMethod, ThresholdMode, threshold};
+use ocellus_nodes::segment::components::connected_components;
 
 const MIN_REPEATS: usize = 7;
 const MAX_REPEATS: usize = 50;
@@ -86,10 +88,22 @@ fn main() {
             Ok(image) => image,
             Err(e) => panic!("{e}"),
         };
-        let inputs: [(&str, &Image); 3] = [
+        // The anchors' connected-components input: the gray image binarized by Otsu.
+        let binary = match threshold(
+            &gray,
+            ThresholdMethod::Otsu,
+            ThresholdMode::Binary,
+            0.0,
+            255.0,
+        ) {
+            Ok((image, _)) => image,
+            Err(e) => panic!("{e}"),
+        };
+        let inputs: [(&str, &Image); 4] = [
             ("u8 gray", &gray),
             ("u8 RGB", &rgb),
             ("f32 gray", &gray_f32),
+            ("u8 binary", &binary),
         ];
         for (op, kinds, run) in cases() {
             if only.as_deref().is_some_and(|o| !op.contains(o)) {
@@ -99,7 +113,8 @@ fn main() {
                 if !kinds.split(',').any(|k| k == kind) {
                     continue;
                 }
-                let input = format!("{tag} {kind}");
+                // OpenCV's rows name the binary input after the gray image it comes from.
+                let input = format!("{tag} {}", kind.replace("u8 binary", "u8 gray"));
                 for &t in &threads {
                     let pool = match rayon::ThreadPoolBuilder::new().num_threads(t).build() {
                         Ok(pool) => pool,
@@ -210,6 +225,29 @@ fn cases() -> Vec<Case> {
                     1,
                     MorphBorder::Neutral,
                 ));
+            }),
+        ),
+        (
+            "Canny 50/150 (aperture 3, L1)",
+            "u8 gray",
+            Box::new(|i| {
+                if let Some(gray) = i.as_u8() {
+                    black_box(canny(gray, i.width(), i.height(), 50.0, 150.0, 3, false));
+                }
+            }),
+        ),
+        (
+            "connectedComponents 8-conn (Otsu binary)",
+            "u8 binary",
+            Box::new(|i| {
+                black_box(connected_components(i, true, false).ok());
+            }),
+        ),
+        (
+            "connectedComponentsWithStats 8-conn",
+            "u8 binary",
+            Box::new(|i| {
+                black_box(connected_components(i, true, true).ok());
             }),
         ),
         (
