@@ -1,7 +1,8 @@
-//! Corner and FAST benchmarks on a 1080p gray u8 image (the synthetic anchor input when present,
-//! else a rendered test card): cornerHarris block 2 ksize 3, goodFeaturesToTrack 2000 Harris,
-//! FAST t = 20 with NMS. Compare single-threaded with
-//! `RAYON_NUM_THREADS=1 cargo bench -p ocellus-nodes --bench detect2`.
+//! Corner and FAST benchmarks on a 1080p gray u8 image (`synth_1080p_gray.png` from the folder
+//! in `OCELLUS_BENCH_INPUTS` when set, the anchors' input; else a rendered test card):
+//! cornerHarris block 2 ksize 3, goodFeaturesToTrack 2000 Harris, FAST t = 20 with NMS. Compare
+//! single-threaded with
+//! `OCELLUS_BENCH_INPUTS=/tmp/inputs RAYON_NUM_THREADS=1 cargo bench -p ocellus-nodes --bench detect2`.
 
 use std::hint::black_box;
 
@@ -15,10 +16,17 @@ const W: usize = 1920;
 const H: usize = 1080;
 
 fn gray() -> Vec<u8> {
-    if let Ok(img) = image::open("/tmp/inputs/synth_1080p_gray.png") {
-        let g = img.to_luma8();
-        if g.width() as usize == W && g.height() as usize == H {
-            return g.into_raw();
+    if let Ok(dir) = std::env::var("OCELLUS_BENCH_INPUTS") {
+        let path = std::path::Path::new(&dir).join("synth_1080p_gray.png");
+        match image::open(&path) {
+            Ok(img) => {
+                let g = img.to_luma8();
+                if g.width() as usize == W && g.height() as usize == H {
+                    return g.into_raw();
+                }
+                panic!("{}: expected {W}×{H}", path.display());
+            }
+            Err(e) => panic!("{}: {e}", path.display()),
         }
     }
     let format = PixelFormat {
