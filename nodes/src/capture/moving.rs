@@ -11,7 +11,7 @@ use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Value};
 
-use super::pattern::PatternChannels;
+use super::pattern::{PatternChannels, splitmix64};
 
 /// Largest width or height of a generated frame.
 pub const MAX_SIDE: u32 = 4096;
@@ -65,14 +65,6 @@ pub struct MovingScene {
     pub channels: Channels,
     /// Seed.
     pub seed: u64,
-}
-
-/// SplitMix64: a counter-based hash giving independent uniform 64-bit values.
-fn splitmix64(mut z: u64) -> u64 {
-    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
 }
 
 /// A uniform value in [0, 1) from a hash.

@@ -340,8 +340,9 @@ fn paint<T: Level>(painter: &Painter, samples: usize, channels: Channels) -> Vec
     data
 }
 
-/// SplitMix64's output function: a bijective 64-bit mix.
-fn splitmix64(x: u64) -> u64 {
+/// SplitMix64's output function: a bijective 64-bit mix (also the counter-based hash of
+/// `capture.moving_shapes`).
+pub(crate) fn splitmix64(x: u64) -> u64 {
     let mut z = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);

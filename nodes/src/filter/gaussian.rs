@@ -1166,11 +1166,6 @@ mod tests {
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn avx2_kernels_equal_portable_ones() {
-        use crate::filter::avx2 as fixed_avx2;
-        assert!(
-            !std::arch::is_x86_feature_detected!("avx2") || fixed_avx2::available(),
-            "dispatch disagrees with the CPU"
-        );
         for (case, ksize) in [3usize, 5, 7, 9, 11, 13, 15].into_iter().enumerate() {
             let sigma = 0.4 + 0.35 * case as f64;
             let Some(kernel) = SymmetricQ16::new(&gaussian_kernel(ksize, sigma)) else {
