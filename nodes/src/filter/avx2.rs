@@ -21,9 +21,11 @@
 #![allow(unsafe_code)] // AVX2 intrinsics: every unsafe block says why it is sound
 
 use std::arch::x86_64::{
-    __m128i, __m256i, _mm_loadu_si128, _mm256_add_epi16, _mm256_cvtepu8_epi16, _mm256_loadu_si256,
-    _mm256_maddubs_epi16, _mm256_packus_epi16, _mm256_permute4x64_epi64, _mm256_set1_epi8,
-    _mm256_set1_epi16, _mm256_setr_epi8, _mm256_shuffle_epi8, _mm256_slli_epi16,
+    __m128i, __m256i, _mm_loadu_si128, _mm_setzero_si128, _mm_storel_epi64, _mm_storeu_si128,
+    _mm256_add_epi16, _mm256_castsi256_si128, _mm256_cvtepu8_epi16, _mm256_extracti128_si256,
+    _mm256_loadu_si256, _mm256_maddubs_epi16, _mm256_packus_epi16, _mm256_permute4x64_epi64,
+    _mm256_permutevar8x32_epi32, _mm256_set_m128i, _mm256_set1_epi8, _mm256_set1_epi16,
+    _mm256_setr_epi8, _mm256_setr_epi32, _mm256_shuffle_epi8, _mm256_slli_epi16,
     _mm256_srli_epi16 as srli16, _mm256_srli_epi16, _mm256_storeu_si256,
 };
 
@@ -279,16 +281,107 @@ fn store32(out: &mut [u8], v: __m256i) {
     }
 }
 
-/// 2×2 block means of a u8 image with `channels` 1 or 4, `(a + b + c + d + 2) >> 2`, for the
-/// whole vectors of 32 output samples of `out` from source rows `top` and `bottom` (each at
-/// least `2·out.len()` samples); returns how many samples it wrote. `None` without AVX2 or for
-/// other channel counts.
+/// 2×2 block means of a u8 image with `channels` 1, 3 or 4, `(a + b + c + d + 2) >> 2`, for
+/// the whole steps of 32 output samples (24 for RGB) of `out` from source rows `top` and
+/// `bottom` (each at least `2·out.len()` samples); returns how many samples it wrote. `None`
+/// without AVX2 or for other channel counts.
 pub(crate) fn half_u8(channels: usize, top: &[u8], bottom: &[u8], out: &mut [u8]) -> Option<usize> {
-    if !available() || !(channels == 1 || channels == 4) {
+    if !available() {
         return None;
     }
-    // SAFETY: AVX2 is available (checked above).
-    Some(unsafe { half_u8_avx2(channels == 4, top, bottom, out) })
+    match channels {
+        // SAFETY: AVX2 is available (checked above).
+        1 | 4 => Some(unsafe { half_u8_avx2(channels == 4, top, bottom, out) }),
+        // SAFETY: as above.
+        3 => Some(unsafe { half_rgb_avx2(top, bottom, out) }),
+        _ => None,
+    }
+}
+
+/// 2×2 means of RGB u8 rows, 24 output bytes (8 pixels) per step from 48 source bytes per row.
+///
+/// Each 128-bit lane takes 4 source pixels (12 bytes): a byte shuffle puts the same channel of
+/// the two pixels of a pair side by side, `pmaddubsw` sums each pair, and the lanes of the two
+/// registers are arranged so that packing, one more shuffle and a dword permute leave the 24
+/// means in order. Source offsets per step: lanes at +0 and +24 (register `a`), +8 and +32
+/// (register `b`, whose lanes use bytes 4..16), so no load reaches past the 48 bytes.
+#[target_feature(enable = "avx2")]
+fn half_rgb_avx2(top: &[u8], bottom: &[u8], out: &mut [u8]) -> usize {
+    const Z: i8 = -128; // shuffle index that writes zero
+    let n = out.len().min(top.len() / 2).min(bottom.len() / 2);
+    let whole = n - n % 24;
+    let ones = _mm256_set1_epi8(1);
+    let two = _mm256_set1_epi16(2);
+    let pair_a = _mm256_setr_epi8(
+        0, 3, 1, 4, 2, 5, 6, 9, 7, 10, 8, 11, Z, Z, Z, Z, 0, 3, 1, 4, 2, 5, 6, 9, 7, 10, 8, 11, Z,
+        Z, Z, Z,
+    );
+    let pair_b = _mm256_setr_epi8(
+        4, 7, 5, 8, 6, 9, 10, 13, 11, 14, 12, 15, Z, Z, Z, Z, 4, 7, 5, 8, 6, 9, 10, 13, 11, 14, 12,
+        15, Z, Z, Z, Z,
+    );
+    let compact = _mm256_setr_epi8(
+        0, 1, 2, 3, 4, 5, 8, 9, 10, 11, 12, 13, Z, Z, Z, Z, 0, 1, 2, 3, 4, 5, 8, 9, 10, 11, 12, 13,
+        Z, Z, Z, Z,
+    );
+    let gather = _mm256_setr_epi32(0, 1, 2, 4, 5, 6, 3, 7);
+    // Pair sums (u16) of the lanes at `i + lo` and `i + hi`, shuffled by `order`.
+    let pairs = |row: &[u8], i: usize, lo: usize, hi: usize, order: __m256i| {
+        let v = _mm256_set_m128i(load_bytes16(row, i + hi), load_bytes16(row, i + lo));
+        _mm256_maddubs_epi16(_mm256_shuffle_epi8(v, order), ones)
+    };
+    for (k, o) in out[..whole].chunks_exact_mut(24).enumerate() {
+        let i = 48 * k;
+        let a = _mm256_add_epi16(
+            pairs(top, i, 0, 24, pair_a),
+            pairs(bottom, i, 0, 24, pair_a),
+        );
+        let b = _mm256_add_epi16(
+            pairs(top, i, 8, 32, pair_b),
+            pairs(bottom, i, 8, 32, pair_b),
+        );
+        let (a, b) = (
+            srli16::<2>(_mm256_add_epi16(a, two)),
+            srli16::<2>(_mm256_add_epi16(b, two)),
+        );
+        let means = _mm256_shuffle_epi8(_mm256_packus_epi16(a, b), compact);
+        let means = _mm256_permutevar8x32_epi32(means, gather);
+        store24(o, means);
+    }
+    whole
+}
+
+/// 16 bytes from `data[i..]` (zeros past the end).
+#[target_feature(enable = "avx2")]
+fn load_bytes16(data: &[u8], i: usize) -> __m128i {
+    match data
+        .get(i..i + 16)
+        .and_then(|s| <&[u8; 16]>::try_from(s).ok())
+    {
+        // SAFETY: `bytes` is 16 readable bytes; the load has no alignment requirement.
+        Some(bytes) => unsafe { _mm_loadu_si128(bytes.as_ptr().cast::<__m128i>()) },
+        None => _mm_setzero_si128(),
+    }
+}
+
+/// Stores the low 24 bytes of `v` into `out` (nothing unless it holds exactly 24).
+#[target_feature(enable = "avx2")]
+fn store24(out: &mut [u8], v: __m256i) {
+    if let Ok(bytes) = <&mut [u8; 24]>::try_from(out) {
+        let (low, high) = bytes.split_at_mut(16);
+        // SAFETY: `low` is 16 and `high` 8 writable bytes, exclusively borrowed; unaligned
+        // stores of 16 and 8 bytes.
+        unsafe {
+            _mm_storeu_si128(
+                low.as_mut_ptr().cast::<__m128i>(),
+                _mm256_castsi256_si128(v),
+            );
+            _mm_storel_epi64(
+                high.as_mut_ptr().cast::<__m128i>(),
+                _mm256_extracti128_si256::<1>(v),
+            );
+        }
+    }
 }
 
 #[target_feature(enable = "avx2")]

@@ -54,13 +54,6 @@ pub const MAX_FIXED_POINT_TAPS: usize = 127;
 /// `ksize_y − 1` rows of overlap per band stays cheap).
 const BAND_ROWS: usize = 64;
 
-/// Bytes of horizontal results a band keeps per vertical strip, so that the ring of `ksize_y` rows
-/// stays in L1 cache (32 KiB or more on current x86 cores) next to the padded source row.
-const RING_BYTES: usize = 24 * 1024;
-
-/// Narrowest strip worth its per-row overhead, in samples.
-const MIN_STRIP_SAMPLES: usize = 256;
-
 /// Fixed-point one: kernel weights are multiples of 2⁻¹⁶.
 const FIXED_ONE: u32 = 1 << 16;
 
@@ -350,23 +343,20 @@ pub fn separable_filter(
             let constant = u8::from_f64(border_value);
             let dst = match FixedU8::new(row_kernel, column_kernel, channels) {
                 Some(fixed) => fixed_u8_bands(&fixed, src, &geometry, constant),
-                None => filter_bands(
-                    &FloatPasses::new(row_kernel, column_kernel, channels),
-                    src,
-                    &geometry,
-                    constant,
-                ),
+                None => float_bands(row_kernel, column_kernel, src, &geometry, constant),
             };
             PixelData::U8(dst)
         }
-        PixelData::U16(src) => PixelData::U16(filter_bands(
-            &FloatPasses::new(row_kernel, column_kernel, channels),
+        PixelData::U16(src) => PixelData::U16(float_bands(
+            row_kernel,
+            column_kernel,
             src,
             &geometry,
             u16::from_f64(border_value),
         )),
-        PixelData::F32(src) => PixelData::F32(filter_bands(
-            &FloatPasses::new(row_kernel, column_kernel, channels),
+        PixelData::F32(src) => PixelData::F32(float_bands(
+            row_kernel,
+            column_kernel,
             src,
             &geometry,
             f32::from_f64(border_value),
@@ -479,35 +469,20 @@ impl Sample for f32 {
     }
 }
 
-/// The two passes of a separable filter for one sample type and arithmetic.
-trait Passes: Sync {
-    /// Input and output samples.
-    type Sample: Sample;
-    /// Horizontal-pass results.
-    type Mid: Copy + Default + Send + Sync;
-    /// Samples of a source row padded through the border table, in the horizontal pass's type.
-    type Padded: Copy + Default;
-
-    /// A sample in the horizontal pass's type (for padding).
-    fn widen(x: Self::Sample) -> Self::Padded;
-
-    /// Filters one padded row (`(width + kx − 1) · channels` samples) into `out`
-    /// (`width · channels`).
-    fn horizontal(&self, padded: &[Self::Padded], out: &mut [Self::Mid]);
-
-    /// Writes `out[i] = Σ_j column_kernel[j] · rows[offsets[j] + i]`.
-    fn vertical(&self, rows: &[Self::Mid], offsets: &[usize], out: &mut [Self::Sample]);
-}
-
-/// Runs both passes over `src` in parallel bands; returns the filtered samples.
-fn filter_bands<P: Passes>(
-    passes: &P,
-    src: &[P::Sample],
+/// The floating-point separable filter (any sample type, f32 arithmetic), vertical pass first
+/// as [`fixed_u8_bands`]: each output row is the column pass over the `ksize_y` source rows it
+/// reads, straight from the image, into one f32 row padded through the column border table,
+/// then the row pass of that row into the output. The temporary row stays in L1 cache and every
+/// source row is read from cache by the `ksize_y` output rows that need it.
+fn float_bands<T: Sample>(
+    row_kernel: &[f64],
+    column_kernel: &[f64],
+    src: &[T],
     geometry: &Geometry,
-    constant: P::Sample,
-) -> Vec<P::Sample> {
+    constant: T,
+) -> Vec<T> {
     // Zeros come from the allocator without a memset; every sample is overwritten.
-    let mut dst = vec![P::Sample::default(); src.len()];
+    let mut dst = vec![T::default(); src.len()];
     let Geometry {
         width,
         channels,
@@ -519,69 +494,98 @@ fn filter_bands<P: Passes>(
     if n == 0 || src.is_empty() {
         return dst;
     }
-    let taps_x = columns.before() + 1 + columns.after();
+    let row_weights: Vec<f32> = row_kernel.iter().map(|&w| w as f32).collect();
+    let column_weights: Vec<f32> = column_kernel.iter().map(|&w| w as f32).collect();
+    let row_offsets: Vec<usize> = (0..row_kernel.len()).map(|i| i * channels).collect();
     let taps_y = rows.before() + 1 + rows.after();
     let band_rows = BAND_ROWS.max(4 * taps_y);
-    // Vertical strips keep the ring of horizontal results in L1 cache on wide images.
-    let ring_samples = RING_BYTES / (taps_y * std::mem::size_of::<P::Mid>());
-    let strips = n.div_ceil(ring_samples.max(MIN_STRIP_SAMPLES));
-    let strip_width = width.div_ceil(strips);
+    let before_x = columns.before();
+    let padded_len = columns.padded_len() * channels;
+    // Outside the columns every extended sample is the constant, so the column pass there gives
+    // the constant times the column weights, summed in the column pass's order.
+    let c = constant.to_f32();
+    let wide_constant = column_weights.iter().fold(0.0f32, |acc, &w| acc + w * c);
+    let constant_row = vec![constant; n];
     dst.par_chunks_mut(band_rows * n)
         .enumerate()
         .for_each(|(band, out)| {
             let y0 = band * band_rows;
-            let out_rows = out.len() / n;
-            let wide_constant = P::widen(constant);
-            let mut padded = vec![wide_constant; (strip_width + taps_x - 1) * channels];
-            let mut ring = vec![P::Mid::default(); taps_y * strip_width * channels];
-            let mut offsets = vec![0; taps_y];
-            for x0 in (0..width).step_by(strip_width.max(1)) {
-                let x1 = (x0 + strip_width).min(width);
-                // Output pixels x0..x1 read extended positions x0 .. x1 + taps_x − 1.
-                let padded = &mut padded[..(x1 - x0 + taps_x - 1) * channels];
-                let m = (x1 - x0) * channels;
-                // Extended row q reads source row q − before; output row y needs extended rows
-                // y .. y + taps_y − 1.
-                for q in y0..y0 + out_rows + taps_y - 1 {
-                    match rows.source(q).and_then(|r| src.get(r * n..(r + 1) * n)) {
-                        Some(line) => {
-                            pad_strip(columns, line, channels, x0, wide_constant, padded, P::widen)
-                        }
-                        None => padded.fill(wide_constant),
-                    }
-                    let slot = q % taps_y;
-                    if let Some(mid) = ring.get_mut(slot * m..(slot + 1) * m) {
-                        passes.horizontal(padded, mid);
-                    }
-                    if q + 1 >= y0 + taps_y {
-                        let y = q + 1 - taps_y;
-                        for (j, offset) in offsets.iter_mut().enumerate() {
-                            *offset = ((y + j) % taps_y) * m;
-                        }
-                        let start = (y - y0) * n + x0 * channels;
-                        if let Some(line) = out.get_mut(start..start + m) {
-                            passes.vertical(&ring, &offsets, line);
-                        }
-                    }
+            let mut padded = vec![wide_constant; padded_len];
+            let mut taps: Vec<&[T]> = vec![&[]; taps_y];
+            for (i, line) in out.chunks_exact_mut(n).enumerate() {
+                // Output row y reads extended rows y .. y + taps_y − 1.
+                for (j, tap) in taps.iter_mut().enumerate() {
+                    *tap = rows
+                        .source(y0 + i + j)
+                        .and_then(|r| src.get(r * n..(r + 1) * n))
+                        .unwrap_or(&constant_row);
                 }
+                let Some(inside) = padded.get_mut(before_x * channels..before_x * channels + n)
+                else {
+                    return;
+                };
+                float_column(&taps, &column_weights, inside);
+                pad_in_place(columns, channels, wide_constant, &mut padded);
+                float_row::<T>(&padded, &row_offsets, &row_weights, line);
             }
         });
     dst
 }
 
-/// [`BorderTable::pad_range_with`] for one strip of a row, compiled for the CPU's vector
-/// extensions (it widens every sample of the row).
+/// The column pass of [`float_bands`]: `out[i] = Σ_j weights[j] · rows[j][i]` in f32, taps in
+/// order of `j`, compiled for the CPU's vector extensions (no fused multiply-add, so the
+/// results do not depend on the path).
 #[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
-fn pad_strip<T: Copy, U: Copy, F: Fn(T) -> U>(
-    columns: &BorderTable,
-    line: &[T],
-    channels: usize,
-    x0: usize,
-    constant: U,
-    padded: &mut [U],
-    widen: F,
+fn float_column<T: Sample>(rows: &[&[T]], weights: &[f32], out: &mut [f32]) {
+    match weights.len() {
+        3 => float_column_unrolled::<T, 3>(rows, weights, out),
+        5 => float_column_unrolled::<T, 5>(rows, weights, out),
+        7 => float_column_unrolled::<T, 7>(rows, weights, out),
+        9 => float_column_unrolled::<T, 9>(rows, weights, out),
+        11 => float_column_unrolled::<T, 11>(rows, weights, out),
+        13 => float_column_unrolled::<T, 13>(rows, weights, out),
+        15 => float_column_unrolled::<T, 15>(rows, weights, out),
+        _ => {
+            const BLOCK: usize = 64;
+            for (block, out) in out.chunks_mut(BLOCK).enumerate() {
+                let start = block * BLOCK;
+                let mut acc = [0.0f32; BLOCK];
+                let acc = &mut acc[..out.len()];
+                for (row, &w) in rows.iter().zip(weights) {
+                    if let Some(s) = row.get(start..start + acc.len()) {
+                        for (a, &x) in acc.iter_mut().zip(s) {
+                            *a += w * x.to_f32();
+                        }
+                    }
+                }
+                out.copy_from_slice(acc);
+            }
+        }
+    }
+}
+
+#[inline(always)]
+fn float_column_unrolled<T: Sample, const K: usize>(
+    rows: &[&[T]],
+    weights: &[f32],
+    out: &mut [f32],
 ) {
-    columns.pad_range_with(line, channels, x0, constant, padded, widen);
+    let Ok(weights) = <[f32; K]>::try_from(weights) else {
+        return;
+    };
+    let mut taps: [&[T]; K] = [&[]; K];
+    for (tap, row) in taps.iter_mut().zip(rows) {
+        *tap = row;
+    }
+    // Looping to the shortest length lets LLVM drop every bounds check.
+    let n = taps.iter().fold(out.len(), |n, tap| n.min(tap.len()));
+    for (i, o) in out.iter_mut().enumerate().take(n) {
+        let mut acc = 0.0f32;
+        for k in 0..K {
+            acc += weights[k] * taps[k][i].to_f32();
+        }
+        *o = acc;
+    }
 }
 
 /// The multiply-accumulate arithmetic of one pass.
@@ -680,25 +684,6 @@ fn blocked<M: Mac>(
     }
 }
 
-/// f32 accumulation for any sample type.
-struct FloatPasses<T> {
-    row: Vec<f32>,
-    column: Vec<f32>,
-    row_offsets: Vec<usize>,
-    _sample: PhantomData<fn() -> T>,
-}
-
-impl<T> FloatPasses<T> {
-    fn new(row: &[f64], column: &[f64], channels: usize) -> Self {
-        FloatPasses {
-            row: row.iter().map(|&w| w as f32).collect(),
-            column: column.iter().map(|&w| w as f32).collect(),
-            row_offsets: (0..row.len()).map(|i| i * channels).collect(),
-            _sample: PhantomData,
-        }
-    }
-}
-
 /// f32 multiply-add, converted to `O` at the end.
 struct FloatMac<O>(PhantomData<fn() -> O>);
 
@@ -717,24 +702,6 @@ impl<O: Sample> Mac for FloatMac<O> {
     #[inline(always)]
     fn finish(&self, acc: f32) -> O {
         O::from_f32(acc)
-    }
-}
-
-impl<T: Sample> Passes for FloatPasses<T> {
-    type Sample = T;
-    type Mid = f32;
-    type Padded = f32;
-
-    fn widen(x: T) -> f32 {
-        x.to_f32()
-    }
-
-    fn horizontal(&self, padded: &[f32], out: &mut [f32]) {
-        float_row::<f32>(padded, &self.row_offsets, &self.row, out);
-    }
-
-    fn vertical(&self, rows: &[f32], offsets: &[usize], out: &mut [T]) {
-        float_row::<T>(rows, offsets, &self.column, out);
     }
 }
 
@@ -1018,7 +985,7 @@ fn row_pass_u8(
 }
 
 /// Fills the border positions of an extended row whose inside is already written.
-fn pad_in_place(columns: &BorderTable, channels: usize, constant: u16, padded: &mut [u16]) {
+fn pad_in_place<T: Copy>(columns: &BorderTable, channels: usize, constant: T, padded: &mut [T]) {
     let before = columns.before();
     let inside_end = before + columns.len();
     let extended = padded.len() / channels;
