@@ -9,6 +9,7 @@
 //! [`resolve`] (validation into a [`graph::Graph`]) → [`exec`] (the scheduler, with [`cache`]) →
 //! [`emit`] / [`summary`] / [`testing`] (outputs for users and tests).
 
+pub mod buffer;
 pub mod cache;
 pub mod codec;
 pub mod diag;

@@ -164,7 +164,7 @@ pub fn corner_response(
     k: f64,
     range: f32,
 ) -> Vec<f32> {
-    let mut out = vec![0.0f32; width * height];
+    let mut out = ocellus_engine::buffer::zeroed::<f32>(width * height);
     if width == 0 || height == 0 || src.len() != width * height {
         return out;
     }

@@ -427,7 +427,7 @@ fn bands<T: Sample, W: ColorWeights<T>, const C: usize>(
     weights: &W,
 ) -> Vec<T> {
     let n = g.width * C;
-    let mut dst = vec![T::default(); src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(src.len());
     if n == 0 || g.channels != C {
         return dst;
     }

@@ -302,7 +302,7 @@ where
     A: Copy + Default + Send + Add<Output = A> + Sub<Output = A>,
     O: Copy + Default + Send,
 {
-    let mut dst = vec![O::default(); src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<O>(src.len());
     let Geometry {
         width,
         channels,
@@ -375,7 +375,7 @@ where
 /// depend on its neighbours. The horizontal window sum is then `kx` shifted vector adds, fused
 /// with the scaling and rounding.
 fn box_u8_fast(src: &[u8], geometry: &Geometry, constant: u8, inverse: f32) -> Vec<u8> {
-    let mut dst = vec![0u8; src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<u8>(src.len());
     let Geometry {
         width,
         channels,

@@ -481,7 +481,7 @@ impl Store for f32 {
 }
 
 fn correct<O: Store>(image: &Image, dark: &Image, gain: &Image, factors: &[f64]) -> Vec<O> {
-    let mut out = vec![O::default(); image.data().len()];
+    let mut out = ocellus_engine::buffer::zeroed::<O>(image.data().len());
     out.par_chunks_mut(SAMPLES_PER_TASK)
         .enumerate()
         .for_each(|(block, dst)| {

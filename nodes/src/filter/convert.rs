@@ -201,7 +201,7 @@ where
     let table: Vec<O> = (0..T::VALUES)
         .map(|v| O::from_f64(v as f64 * scale + offset))
         .collect();
-    let mut dst = vec![O::default(); src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<O>(src.len());
     dst.par_chunks_mut(SAMPLES_PER_TASK)
         .zip(src.par_chunks(SAMPLES_PER_TASK))
         .for_each(|(out, inp)| {
@@ -242,7 +242,7 @@ impl TableIndex for u16 {
 }
 
 fn from_float<O: Sample>(src: &[f32], scale: f64, offset: f64) -> Vec<O> {
-    let mut dst = vec![O::default(); src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<O>(src.len());
     dst.par_chunks_mut(SAMPLES_PER_TASK)
         .zip(src.par_chunks(SAMPLES_PER_TASK))
         .for_each(|(out, inp)| {
@@ -399,7 +399,7 @@ impl Operator for MergeChannels {
 fn interleave<T: Copy + Default>(planes: &[&[T]]) -> Vec<T> {
     let c = planes.len();
     let n = planes.first().map_or(0, |p| p.len());
-    let mut out = vec![T::default(); n * c];
+    let mut out = ocellus_engine::buffer::zeroed::<T>(n * c);
     for (k, plane) in planes.iter().enumerate() {
         for (o, &v) in out.iter_mut().skip(k).step_by(c).zip(plane.iter()) {
             *o = v;

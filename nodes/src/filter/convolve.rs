@@ -458,7 +458,7 @@ fn dense_bands<T: Sample>(
     let [ax, ay] = options.anchor;
     let n = width * c;
     let on = ow * c;
-    let mut dst = vec![0.0f32; on * oh];
+    let mut dst = ocellus_engine::buffer::zeroed::<f32>(on * oh);
     if n == 0 || height == 0 || on == 0 {
         return dst;
     }

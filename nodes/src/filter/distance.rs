@@ -134,7 +134,7 @@ pub fn distance_of_sites(zero: &[bool], w: usize, h: usize, metric: Metric) -> V
         return chessboard(zero, w, h);
     }
     let column = column_distances(zero, w, h);
-    let mut out = vec![0f32; w * h];
+    let mut out = ocellus_engine::buffer::zeroed::<f32>(w * h);
     out.par_chunks_mut(BAND_ROWS * w).enumerate().for_each_init(
         RowScratch::default,
         |scratch, (band, rows)| {

@@ -117,7 +117,7 @@ pub struct LicSettings {
 /// docs).
 pub fn lic(vx: &Plane, vy: &Plane, texture: &Plane, settings: LicSettings) -> Plane {
     let (w, h) = (texture.width, texture.height);
-    let mut out = vec![0f32; w * h];
+    let mut out = ocellus_engine::buffer::zeroed::<f32>(w * h);
     if w == 0 || h == 0 || vx.data.len() != w * h || vy.data.len() != w * h {
         return Plane {
             width: w,

@@ -482,7 +482,7 @@ fn float_bands<T: Sample>(
     constant: T,
 ) -> Vec<T> {
     // Zeros come from the allocator without a memset; every sample is overwritten.
-    let mut dst = vec![T::default(); src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(src.len());
     let Geometry {
         width,
         channels,
@@ -901,7 +901,7 @@ fn symmetric_blocked<O>(
 /// output. Both temporaries stay in L1 cache and every source row is read from cache by the
 /// `ksize_y` output rows that need it.
 fn fixed_u8_bands(fixed: &FixedU8, src: &[u8], geometry: &Geometry, constant: u8) -> Vec<u8> {
-    let mut dst = vec![0u8; src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<u8>(src.len());
     let Geometry {
         width,
         channels,

@@ -179,7 +179,7 @@ impl IntegerSample for u16 {
 fn integer_luma<T: IntegerSample, const S: usize, const CR: u32, const CG: u32, const CB: u32>(
     src: &[T],
 ) -> Vec<T> {
-    let mut dst = vec![T::default(); src.len() / S];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(src.len() / S);
     dst.par_chunks_mut(PIXELS_PER_TASK)
         .zip(src.par_chunks(PIXELS_PER_TASK * S))
         .for_each(|(out, pixels)| {

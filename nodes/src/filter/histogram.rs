@@ -170,7 +170,7 @@ pub fn equalize(image: &Image, mode: ColorMode) -> Result<Image, String> {
 
 /// `lut[v]` for every sample, in parallel chunks.
 fn apply_lut_u8(src: &[u8], lut: &[u8; 256]) -> Vec<u8> {
-    let mut dst = vec![0u8; src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<u8>(src.len());
     dst.par_chunks_mut(1 << 16)
         .zip(src.par_chunks(1 << 16))
         .for_each(|(d, s)| {
@@ -508,7 +508,7 @@ fn clahe_plane<T: ClaheSample>(
         x_tiles.push((i1, i2, xa, 1.0 - xa));
     }
     let inv_th = 1.0f32 / tile_h as f32;
-    let mut dst = vec![T::default(); w * h];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(w * h);
     dst.par_chunks_mut(BAND_ROWS * w)
         .enumerate()
         .for_each(|(band, out)| {

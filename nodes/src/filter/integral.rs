@@ -127,10 +127,11 @@ impl IntegralImage {
 
 /// The integral image of `image`: S(x, y) = Σ_{i<x, j<y} I(i, j) per channel.
 pub fn integral(image: &Image) -> IntegralImage {
-    // Integer rows run their sums in u64 (exact, one-cycle adds), f32 rows in f64.
+    // Integer rows run their sums in i64 (exact, one-cycle adds, and one instruction to
+    // convert, where u64 → f64 takes several), f32 rows in f64.
     match image.data() {
-        PixelData::U8(v) => table(image, v, u64::from, |s: u64| s as f64),
-        PixelData::U16(v) => table(image, v, u64::from, |s: u64| s as f64),
+        PixelData::U8(v) => table(image, v, i64::from, |s: i64| s as f64),
+        PixelData::U16(v) => table(image, v, i64::from, |s: i64| s as f64),
         PixelData::F32(v) => table(image, v, f64::from, |s: f64| s),
     }
 }
@@ -141,10 +142,10 @@ pub fn squared_integral(image: &Image) -> IntegralImage {
         PixelData::U8(v) => table(
             image,
             v,
-            |s| u64::from(u32::from(s) * u32::from(s)),
-            |s: u64| s as f64,
+            |s| i64::from(u32::from(s) * u32::from(s)),
+            |s: i64| s as f64,
         ),
-        PixelData::U16(v) => table(image, v, |s| u64::from(s) * u64::from(s), |s: u64| s as f64),
+        PixelData::U16(v) => table(image, v, |s| i64::from(s) * i64::from(s), |s: i64| s as f64),
         PixelData::F32(v) => table(
             image,
             v,
@@ -165,7 +166,7 @@ fn table<T: Copy, A: Copy + Default + std::ops::AddAssign>(
 ) -> IntegralImage {
     let (w, h, c) = (image.width(), image.height(), image.channels().count());
     let stride = (w + 1) * c;
-    let mut sum = vec![0.0; stride * (h + 1)];
+    let mut sum = ocellus_engine::buffer::zeroed::<f64>(stride * (h + 1));
     if w > 0 {
         for (y, row) in src.chunks_exact(w * c).take(h).enumerate() {
             let (above, below) = sum.split_at_mut((y + 1) * stride);

@@ -367,7 +367,7 @@ fn bands<T: Sample, O: Copy + Default + Send, const C: usize>(
     finish: impl Fn(f64) -> O + Sync,
 ) -> Vec<O> {
     let n = g.width * C;
-    let mut dst = vec![O::default(); src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<O>(src.len());
     if n == 0 {
         return dst;
     }

@@ -368,7 +368,7 @@ fn bands<T: Sample>(
     band: impl Fn(&Padded<T>, &Geometry, &mut [T]) + Sync,
 ) -> Vec<T> {
     let n = g.width * g.channels;
-    let mut dst = vec![T::default(); src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(src.len());
     if n == 0 {
         return dst;
     }
@@ -488,7 +488,7 @@ fn network<T: Sample, const L: usize>(
     }
     let c = g.channels;
     let n = g.width * c;
-    let mut dst = vec![T::default(); src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(src.len());
     if n == 0 {
         return Ok(dst);
     }

@@ -1042,7 +1042,7 @@ fn extremum_bands<M: Extremum, T: Sample>(
     element: &StructuringElement,
     border: MorphBorder,
 ) -> Vec<T> {
-    let mut dst = vec![T::default(); src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(src.len());
     let (width, height) = (image.width(), image.height());
     let channels = image.channels().count();
     let n = width * channels;
@@ -1094,7 +1094,7 @@ fn fused_bands<A: Extremum, B: Extremum, T: Sample>(
     {
         return None;
     }
-    let mut dst = vec![T::default(); src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(src.len());
     dst.par_chunks_mut(band_rows * n).enumerate().for_each_init(
         || (BandBuffers::default(), Vec::new()),
         |(buffers, stage), (band, out)| {

@@ -401,7 +401,7 @@ fn down<T: PyrSample>(src: &[T], w: usize, h: usize, c: usize) -> Vec<T> {
     let (dw, dh) = (w.div_ceil(2), h.div_ceil(2));
     let n = dw * c;
     let sn = w * c;
-    let mut dst = vec![T::default(); n * dh];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(n * dh);
     if n == 0 || dh == 0 {
         return dst;
     }
@@ -502,7 +502,7 @@ fn up<T: PyrSample>(src: &[T], w: usize, h: usize, c: usize, dw: usize, dh: usiz
     let n = dw * c;
     let sn = w * c;
     let full = 2 * w * c;
-    let mut dst = vec![T::default(); n * dh];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(n * dh);
     if n == 0 || dh == 0 {
         return dst;
     }

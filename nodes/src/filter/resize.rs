@@ -316,7 +316,7 @@ fn nearest(data: &PixelData, g: &Geometry) -> PixelData {
             .map(|dx| ((dx as f64 * g.scale_x).floor() as usize).min(g.sw - 1) * c)
             .collect();
         let n = g.dw * c;
-        let mut dst = vec![T::default(); n * g.dh];
+        let mut dst = ocellus_engine::buffer::zeroed::<T>(n * g.dh);
         dst.par_chunks_mut(n).enumerate().for_each(|(dy, out)| {
             let sy = ((dy as f64 * g.scale_y).floor() as usize).min(g.sh - 1);
             let row = &src[sy * g.sw * c..(sy + 1) * g.sw * c];
@@ -530,7 +530,7 @@ where
     let n = g.dw * g.c;
     let sn = g.sw * g.c;
     let taps = ty.taps;
-    let mut dst = vec![O::default(); n * g.dh];
+    let mut dst = ocellus_engine::buffer::zeroed::<O>(n * g.dh);
     dst.par_chunks_mut(n * BAND_ROWS)
         .enumerate()
         .for_each(|(band, out)| {
@@ -757,7 +757,7 @@ impl Integer for u16 {
 /// 2×2 block means of integer samples, `(a + b + c + d + 2) ≫ 2`.
 fn half_u8_like<T: Integer>(src: &[T], g: &Geometry) -> Vec<T> {
     let (c, n, sn) = (g.c, g.dw * g.c, g.sw * g.c);
-    let mut dst = vec![T::default(); n * g.dh];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(n * g.dh);
     dst.par_chunks_mut(n * BAND_ROWS)
         .enumerate()
         .for_each(|(band, out)| {
@@ -805,7 +805,7 @@ fn half_row<T: Integer, const C: usize>(r0: &[T], r1: &[T], out: &mut [T]) {
 fn blocks_int<T: Integer>(src: &[T], g: &Geometry, kx: usize, ky: usize) -> Vec<T> {
     let (c, n, sn) = (g.c, g.dw * g.c, g.sw * g.c);
     let inv = (1.0 / (kx * ky) as f64) as f32;
-    let mut dst = vec![T::default(); n * g.dh];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(n * g.dh);
     dst.par_chunks_mut(n).enumerate().for_each(|(dy, line)| {
         let mut acc = vec![0u32; n];
         for j in 0..ky {
@@ -833,7 +833,7 @@ fn blocks_int<T: Integer>(src: &[T], g: &Geometry, kx: usize, ky: usize) -> Vec<
 fn blocks_f32(src: &[f32], g: &Geometry, kx: usize, ky: usize) -> Vec<f32> {
     let (c, n, sn) = (g.c, g.dw * g.c, g.sw * g.c);
     let inv = (1.0 / (kx * ky) as f64) as f32;
-    let mut dst = vec![0f32; n * g.dh];
+    let mut dst = ocellus_engine::buffer::zeroed::<f32>(n * g.dh);
     dst.par_chunks_mut(n).enumerate().for_each(|(dy, line)| {
         line.fill(0.0);
         for j in 0..ky {
@@ -886,7 +886,7 @@ fn area_general(data: &PixelData, g: &Geometry) -> PixelData {
         let (c, n, sn) = (g.c, g.dw * g.c, g.sw * g.c);
         let (xs, xi, xw) = area_table(g.sw, g.dw, g.scale_x);
         let (ys, yi, yw) = area_table(g.sh, g.dh, g.scale_y);
-        let mut dst = vec![T::default(); n * g.dh];
+        let mut dst = ocellus_engine::buffer::zeroed::<T>(n * g.dh);
         dst.par_chunks_mut(n).enumerate().for_each(|(dy, line)| {
             let mut acc = vec![0f32; n];
             let mut hrow = vec![0f32; n];

@@ -402,7 +402,7 @@ fn sum_u8_3tap(
         }
         dst
     } else {
-        let mut dst = vec![0.0f32; src.len()];
+        let mut dst = ocellus_engine::buffer::zeroed::<f32>(src.len());
         dst.par_chunks_mut(BAND_ROWS * n)
             .enumerate()
             .for_each(|(band, out)| {

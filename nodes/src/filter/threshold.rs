@@ -305,7 +305,7 @@ where
     T: Copy + Default + Send + Sync,
     F: Fn(&[T], &mut [T]) + Sync,
 {
-    let mut dst = vec![T::default(); src.len()];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(src.len());
     dst.par_chunks_mut(CHUNK)
         .zip(src.par_chunks(CHUNK))
         .for_each(|(d, s)| f(s, d));

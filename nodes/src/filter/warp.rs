@@ -496,7 +496,7 @@ fn run<T: Sample>(src: &[T], g: &Geo, t: &Transform, o: &WarpOptions) -> Vec<T> 
 fn run_nearest<T: Sample>(src: &[T], g: &Geo, t: &Transform, o: &WarpOptions) -> Vec<T> {
     let (w, h, c) = (g.w, g.h, g.c);
     let n = g.dw * c;
-    let mut dst = vec![T::default(); n * g.dh];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(n * g.dh);
     if n == 0 {
         return dst;
     }
@@ -528,7 +528,7 @@ fn run_taps<T: Sample, const TAPS: usize>(
 ) -> Vec<T> {
     let (w, h, c) = (g.w, g.h, g.c);
     let n = g.dw * c;
-    let mut dst = vec![T::default(); n * g.dh];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(n * g.dh);
     if n == 0 {
         return dst;
     }

@@ -116,7 +116,7 @@ fn pad_clamp(plane: &[f32], w: usize, h: usize, pw: usize, ph: usize) -> Vec<f32
     if (w, h) == (pw, ph) || w == 0 || h == 0 {
         return plane.to_vec();
     }
-    let mut out = vec![0.0f32; pw * ph];
+    let mut out = ocellus_engine::buffer::zeroed::<f32>(pw * ph);
     for (y, row) in out.chunks_exact_mut(pw).enumerate() {
         let src = &plane[y.min(h - 1) * w..][..w];
         row[..w].copy_from_slice(src);
@@ -160,7 +160,7 @@ pub fn dct_plane(plane: &[f32], w: usize, h: usize, inverse: bool) -> Vec<f32> {
     if inverse {
         std::mem::swap(&mut m, &mut mt);
     }
-    let mut out = vec![0.0f32; w * h];
+    let mut out = ocellus_engine::buffer::zeroed::<f32>(w * h);
     if w == 0 || h == 0 {
         return out;
     }

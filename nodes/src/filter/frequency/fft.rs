@@ -227,7 +227,7 @@ impl Operator for IfftOp {
 
 /// ln(1 + √(re² + im²)) of every sample.
 pub fn log_magnitude(re: &[f32], im: &[f32]) -> Vec<f32> {
-    let mut out = vec![0.0f32; re.len()];
+    let mut out = ocellus_engine::buffer::zeroed::<f32>(re.len());
     out.par_chunks_mut(1 << 14)
         .zip(re.par_chunks(1 << 14).zip(im.par_chunks(1 << 14)))
         .for_each(|(o, (r, i))| {
@@ -356,7 +356,7 @@ pub fn ifft2d(re: &[f32], im: &[f32], width: usize, height: usize, centered: boo
     drop(spectrum);
     fft_rows(&mut columns, height, &planner.plan_fft_inverse(height));
     let scale = 1.0 / n as f32;
-    let mut out = vec![0.0f32; n];
+    let mut out = ocellus_engine::buffer::zeroed::<f32>(n);
     // Transpose back, keeping the real part.
     out.par_chunks_mut(width * TILE)
         .enumerate()
@@ -459,7 +459,7 @@ pub(crate) fn real_from_spectrum_half(
     drop(columns);
     let row_fft = planner.plan_fft_inverse(width);
     let scratch_len = row_fft.get_inplace_scratch_len();
-    let mut out = vec![0.0f32; width * height];
+    let mut out = ocellus_engine::buffer::zeroed::<f32>(width * height);
     out.par_chunks_mut(width * BAND_ROWS)
         .enumerate()
         .for_each_init(
@@ -524,7 +524,7 @@ pub(crate) fn transpose<T: Copy + Default + Send + Sync>(
     rows: usize,
     cols: usize,
 ) -> Vec<T> {
-    let mut dst = vec![T::default(); rows * cols];
+    let mut dst = ocellus_engine::buffer::zeroed::<T>(rows * cols);
     if rows == 0 || cols == 0 {
         return dst;
     }
