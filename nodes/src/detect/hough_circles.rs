@@ -13,8 +13,9 @@
 //! 5. radius per centre: a histogram of the distances of the edge pixels whose gradient points
 //!    at the centre, its best 3-px window by support per unit radius;
 //! 6. refinement: the edge pixels near that circle are located to sub-pixel accuracy (parabola
-//!    through the gradient magnitude across the edge, as Devernay's sub-pixel Canny) and fitted
-//!    by an algebraic (Kåsa) circle, then Gauss–Newton iterations of the geometric fit.
+//!    through the gradient magnitude across the edge, as Devernay's sub-pixel Canny), split by
+//!    polarity, and each polarity fitted by an algebraic (Kåsa) circle then Gauss–Newton
+//!    iterations of the geometric fit; two opposite edges of a drawn line give its middle.
 //!
 //! # Determinism
 //!
@@ -397,10 +398,11 @@ fn solve3(mut a: [[f64; 3]; 3], mut b: [f64; 3]) -> Option<[f64; 3]> {
         }
         a.swap(c, p);
         b.swap(c, p);
+        let pivot = a[c];
         for r in c + 1..3 {
-            let f = a[r][c] / a[c][c];
-            for k in c..3 {
-                a[r][k] -= f * a[c][k];
+            let f = a[r][c] / pivot[c];
+            for (dst, src) in a[r].iter_mut().zip(pivot).skip(c) {
+                *dst -= f * src;
             }
             b[r] -= f * b[c];
         }
@@ -787,21 +789,26 @@ Method:
 5. Radius: the distances from the candidate to the edge pixels whose gradient lies within 26°
    of the line to it are binned per px; the 3-px window with the most support per unit radius
    among those with more than votes_threshold pixels gives the radius (none: no circle).
-6. Refinement: edge pixels within 1.5 + 0.75·dp px of that circle are located to sub-pixel
-   accuracy (the parabola through the gradient magnitudes across the edge, Devernay 1995),
-   fitted by the algebraic Kåsa circle and then by Gauss–Newton iterations of the geometric
-   least-squares fit, twice re-selecting the pixels within 1.5 px of the fitted circle. If the
-   fit fails or moves too far, the unrefined circle is kept. Refined circles closer than
-   min_dist_px to a stronger one, or with radii outside [min_radius_px, max_radius_px], are
-   dropped.
+6. Refinement: the supporting edge pixels within 7.5 + 0.75·dp px of that radius are located
+   to sub-pixel accuracy (the parabola through the gradient magnitudes across the edge,
+   Devernay 1995) and split by polarity (gradient towards or away from the centre). Each group
+   is fitted by the algebraic Kåsa circle on its pixels near their median distance, then by
+   Gauss–Newton iterations of the geometric least-squares fit, three times re-selecting the
+   pixels within 1.5 px of the fitted circle. The group with more pixels gives the circle;
+   when the other has at least half as many, a centre within 1 px and a radius within 6 px,
+   the two are the edges of a line drawn as a circle and the circle is their middle. A
+   candidate whose fit fails or keeps no more than votes_threshold pixels is dropped, as are
+   refined circles closer than min_dist_px to a stronger one or with radii outside
+   [min_radius_px, max_radius_px].
 
 Output: Matrix with one row per circle, columns x, y (centre, px, pixel centres at integer
 coordinates), radius (px), votes (accumulator peak votes), sorted by votes, strongest first.
 
 Differences from OpenCV: optional pre-blur; rays stepped with 16 instead of 10 fractional bits;
 the radius histogram counts only edge pixels whose gradient points at the centre; sub-pixel
-refinement (OpenCV reports accumulator-cell centres and histogram radii). A thin ring drawn as
-a line is found at the middle of its two edges. Concentric circles share one centre and only
+refinement and its support check (OpenCV reports accumulator-cell centres and histogram radii,
+and off-centre secondary peaks of large circles as extra circles). A ring drawn as a line up to
+6 px wide is found at the middle of its two edges. Concentric circles share one centre and only
 the best-supported radius is reported, as in OpenCV.
 
 References: H. K. Yuen, J. Princen, J. Illingworth, J. Kittler, "Comparative study of Hough
