@@ -3,8 +3,8 @@
 //!
 //! [`hough_circles`] works on a gray 8-bit image:
 //! 1. optional Gaussian pre-blur;
-//! 2. Canny edges ([`canny`], thresholds `high/2`, `high`) and 3×3 Sobel gradients
-//!    ([`sobel_i16`]) of the blurred image;
+//! 2. Canny edges ([`canny`], thresholds `high/2`, `high`) of the blurred image and its 3×3
+//!    Sobel gradients at the edge pixels;
 //! 3. every edge pixel votes along its gradient line, both ways, for radii in the search range,
 //!    into a centre accumulator with cells of `dp × dp` px (fixed-point ray stepping, 16
 //!    fractional bits);
@@ -31,7 +31,7 @@ use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Matrix, Value};
 use rayon::prelude::*;
 
-use super::canny::{canny, sobel_i16};
+use super::canny::canny;
 use super::gray::gray_u8;
 use crate::filter::border::BorderMode;
 use crate::filter::gaussian::gaussian_blur;
@@ -118,24 +118,33 @@ struct EdgePoint {
 }
 
 /// The edge pixels in raster order and where each row starts.
-struct Edges {
+struct Edges<'a> {
     points: Vec<EdgePoint>,
     /// `points[row_start[y]..row_start[y + 1]]` are row y's.
     row_start: Vec<usize>,
+    gray: &'a [u8],
     width: usize,
     height: usize,
-    dx: Vec<i16>,
-    dy: Vec<i16>,
 }
 
-impl Edges {
+/// The 3×3 Sobel gradient of `gray` at (x, y), border replicate (as [`canny`]'s).
+fn sobel_at(gray: &[u8], width: usize, height: usize, x: usize, y: usize) -> (i32, i32) {
+    let (xl, xr) = (x.saturating_sub(1), (x + 1).min(width - 1));
+    let (ru, rd) = (y.saturating_sub(1) * width, (y + 1).min(height - 1) * width);
+    let rc = y * width;
+    let at = |r: usize, c: usize| i32::from(gray[r + c]);
+    let gx = at(ru, xr) + 2 * at(rc, xr) + at(rd, xr) - at(ru, xl) - 2 * at(rc, xl) - at(rd, xl);
+    let gy = at(rd, xl) + 2 * at(rd, x) + at(rd, xr) - at(ru, xl) - 2 * at(ru, x) - at(ru, xr);
+    (gx, gy)
+}
+
+impl Edges<'_> {
     fn magnitude(&self, x: i32, y: i32) -> Option<f32> {
         if x < 0 || y < 0 || x as usize >= self.width || y as usize >= self.height {
             return None;
         }
-        let i = y as usize * self.width + x as usize;
-        let (gx, gy) = (f32::from(self.dx[i]), f32::from(self.dy[i]));
-        Some((gx * gx + gy * gy).sqrt())
+        let (gx, gy) = sobel_at(self.gray, self.width, self.height, x as usize, y as usize);
+        Some((gx as f32).hypot(gy as f32))
     }
 
     /// Sub-pixel position of edge pixel `p`: the vertex of the parabola through the gradient
@@ -202,18 +211,17 @@ impl Edges {
 }
 
 /// Canny edges and unit gradients of `gray`.
-fn edges_of(gray: &[u8], width: usize, height: usize, high: f64) -> Edges {
+fn edges_of(gray: &[u8], width: usize, height: usize, high: f64) -> Edges<'_> {
     let edge_map = canny(gray, width, height, high * 0.5, high, 3, false);
-    let (dx, dy) = sobel_i16(gray, width, height, 3);
     let mut points = Vec::new();
     let mut row_start = Vec::with_capacity(height + 1);
     for y in 0..height {
         row_start.push(points.len());
         let row = &edge_map[y * width..(y + 1) * width];
         for (x, _) in row.iter().enumerate().filter(|(_, e)| **e != 0) {
-            let i = y * width + x;
-            let (gx, gy) = (f32::from(dx[i]), f32::from(dy[i]));
-            let m = (gx * gx + gy * gy).sqrt();
+            let (gx, gy) = sobel_at(gray, width, height, x, y);
+            let (gx, gy) = (gx as f32, gy as f32);
+            let m = gx.hypot(gy);
             if m > 0.0 {
                 points.push(EdgePoint {
                     x: x as i32,
@@ -228,10 +236,9 @@ fn edges_of(gray: &[u8], width: usize, height: usize, high: f64) -> Edges {
     Edges {
         points,
         row_start,
+        gray,
         width,
         height,
-        dx,
-        dy,
     }
 }
 
@@ -265,40 +272,71 @@ struct Ray {
     sy: i64,
 }
 
-/// The centre accumulator (with a one-cell zero frame) of the edge rays over radii
-/// `rmin..=rmax`.
+/// The part of a ray inside the accumulator and the radius range: `len` steps from `(x, y)`,
+/// over accumulator rows `row_lo..=row_hi`.
+#[derive(Clone, Copy)]
+struct Segment {
+    x: i64,
+    y: i64,
+    sx: i64,
+    sy: i64,
+    len: i64,
+    row_lo: i64,
+    row_hi: i64,
+}
+
+/// The centre accumulator (with a one-cell zero frame) of the edge rays, both ways, over radii
+/// `rmin..=rmax`; a ray stops where it leaves the accumulator.
 fn vote(rays: &[Ray], cols: usize, rows: usize, rmin: i64, rmax: i64) -> Vec<u32> {
     let stride = cols + 2;
     let mut acc = vec![0u32; stride * (rows + 2)];
     let one = 1i64 << SHIFT;
     let (xlo, xhi) = (one, (cols as i64 + 1) * one - 1);
+    let (ylo, yhi) = (one, (rows as i64 + 1) * one - 1);
+    let mut segments = Vec::with_capacity(rays.len() * 2);
+    for ray in rays {
+        for sign in [1i64, -1] {
+            let (sx, sy) = (ray.sx * sign, ray.sy * sign);
+            let (ya, yb) = ray_interval(ray.y0, sy, ylo, yhi);
+            let (xa, xb) = ray_interval(ray.x0, sx, xlo, xhi);
+            let ra = ya.max(xa).max(rmin);
+            let rb = yb.min(xb).min(rmax);
+            if ra > rb {
+                continue;
+            }
+            let (y, y_end) = (ray.y0 + ra * sy, ray.y0 + rb * sy);
+            segments.push(Segment {
+                x: ray.x0 + ra * sx,
+                y,
+                sx,
+                sy,
+                len: rb - ra + 1,
+                row_lo: y.min(y_end) >> SHIFT,
+                row_hi: y.max(y_end) >> SHIFT,
+            });
+        }
+    }
     acc.par_chunks_mut(stride * BAND_ROWS)
         .enumerate()
         .for_each(|(b, band)| {
             let b0 = (b * BAND_ROWS) as i64;
-            let b1 = b0 + (band.len() / stride) as i64;
-            let (lo, hi) = (b0.max(1), b1.min(rows as i64 + 1));
-            if lo >= hi {
-                return;
-            }
-            let (ylo, yhi) = (lo * one, hi * one - 1);
-            for ray in rays {
-                for sign in [1i64, -1] {
-                    let (sx, sy) = (ray.sx * sign, ray.sy * sign);
-                    let (ya, yb) = ray_interval(ray.y0, sy, ylo, yhi);
-                    let (xa, xb) = ray_interval(ray.x0, sx, xlo, xhi);
-                    let ra = ya.max(xa).max(rmin);
-                    let rb = yb.min(xb).min(rmax);
-                    if ra > rb {
-                        continue;
-                    }
-                    let mut x = ray.x0 + ra * sx;
-                    let mut y = ray.y0 + ra * sy - b0 * one;
-                    for _ in ra..=rb {
-                        band[(y >> SHIFT) as usize * stride + (x >> SHIFT) as usize] += 1;
-                        x += sx;
-                        y += sy;
-                    }
+            let b1 = b0 + (band.len() / stride) as i64 - 1;
+            for seg in &segments {
+                if seg.row_hi < b0 || seg.row_lo > b1 {
+                    continue;
+                }
+                let (ta, tb) = if seg.row_lo >= b0 && seg.row_hi <= b1 {
+                    (0, seg.len - 1)
+                } else {
+                    let (ta, tb) = ray_interval(seg.y, seg.sy, b0 * one, (b1 + 1) * one - 1);
+                    (ta.max(0), tb.min(seg.len - 1))
+                };
+                let mut x = seg.x + ta * seg.sx;
+                let mut y = seg.y + ta * seg.sy - b0 * one;
+                for _ in ta..=tb {
+                    band[(y >> SHIFT) as usize * stride + (x >> SHIFT) as usize] += 1;
+                    x += seg.sx;
+                    y += seg.sy;
                 }
             }
         });
