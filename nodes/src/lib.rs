@@ -73,6 +73,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<detect::fast::Fast>()?;
     registry.register::<detect::hough::HoughLines>()?;
     registry.register::<detect::hough::HoughSegments>()?;
+    registry.register::<detect::hough_circles::HoughCircles>()?;
     registry.register::<detect::template::TemplateMatch>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;

@@ -6,6 +6,7 @@ pub mod corners;
 pub mod fast;
 pub mod gray;
 pub mod hough;
+pub mod hough_circles;
 pub mod marker;
 pub mod mser;
 pub mod qr;
