@@ -97,16 +97,125 @@ fn has_arc(mask: u32) -> bool {
     m & 0xFFFF != 0 || (m >> 16) & 0xFFFF != 0
 }
 
+/// Lanes per screening vector.
+const LANES: usize = 32;
+
+/// One vector of lanes.
+type Lanes = [u8; LANES];
+
+/// `LANES` bytes of `s` from `at` (the caller keeps `at + LANES ≤ s.len()`).
+#[inline(always)]
+fn load(s: &[u8], at: usize) -> Lanes {
+    let mut v = [0u8; LANES];
+    v.copy_from_slice(&s[at..at + LANES]);
+    v
+}
+
+/// Lane-wise `a & b`.
+#[inline(always)]
+fn and(a: &Lanes, b: &Lanes) -> Lanes {
+    std::array::from_fn(|i| a[i] & b[i])
+}
+
+/// Lane-wise `a | b`.
+#[inline(always)]
+fn or(a: &Lanes, b: &Lanes) -> Lanes {
+    std::array::from_fn(|i| a[i] | b[i])
+}
+
+/// Whether any lane is non-zero.
+#[inline(always)]
+fn any(a: &Lanes) -> bool {
+    a.iter().fold(0u8, |acc, &v| acc | v) != 0
+}
+
+/// Per lane, 0xFF where the 16 circular masks `m` (0 or 0xFF per lane) hold 9 consecutive
+/// set entries, else 0: runs of 2, 4, 8, then 8 + 1, by doubling.
+#[inline(always)]
+fn arc9(m: &[Lanes; 16]) -> Lanes {
+    let m2: [Lanes; 16] = std::array::from_fn(|k| and(&m[k], &m[(k + 1) % 16]));
+    let m4: [Lanes; 16] = std::array::from_fn(|k| and(&m2[k], &m2[(k + 2) % 16]));
+    let m8: [Lanes; 16] = std::array::from_fn(|k| and(&m4[k], &m4[(k + 4) % 16]));
+    let mut acc = [0u8; LANES];
+    for k in 0..16 {
+        acc = or(&acc, &and(&m8[k], &m[(k + 8) % 16]));
+    }
+    acc
+}
+
+/// Corner columns of one row: `ring[k]` is the row of circle pixel `k` (the slice starts at
+/// its offset from the first centre column), `centre` the row of centres, all at least `n`
+/// long. Pushes into `corners` the centre indices `i < n` (ascending) that are FAST-9 corners
+/// with threshold `t`, except in the last `n % LANES` columns, where it pushes candidates that
+/// passed only a necessary test (the caller runs the full test on every pushed index).
+///
+/// Vectors of [`LANES`] centres: pixels 0, 4, 8, 12 (an arc of 9 contains two adjacent ones,
+/// both brighter than `v + t` or both darker than `v − t`) reject most vectors; the rest get
+/// the 16 comparisons and a search for 9 consecutive set masks.
+#[multiversion::multiversion(targets("x86_64+avx2", "x86_64+sse4.1"))]
+fn screen_row(ring: &[&[u8]; 16], centre: &[u8], n: usize, t: u8, corners: &mut Vec<usize>) {
+    let gt = |a: &Lanes, b: &Lanes| -> Lanes {
+        std::array::from_fn(|i| 0u8.wrapping_sub(u8::from(a[i] > b[i])))
+    };
+    let mut x = 0;
+    while x + LANES <= n {
+        let v = load(centre, x);
+        let hi: Lanes = std::array::from_fn(|i| v[i].saturating_add(t));
+        let lo: Lanes = std::array::from_fn(|i| v[i].saturating_sub(t));
+        let compass = [
+            load(ring[0], x),
+            load(ring[4], x),
+            load(ring[8], x),
+            load(ring[12], x),
+        ];
+        let b: [Lanes; 4] = std::array::from_fn(|k| gt(&compass[k], &hi));
+        let d: [Lanes; 4] = std::array::from_fn(|k| gt(&lo, &compass[k]));
+        let mut pass = [0u8; LANES];
+        for k in 0..4 {
+            pass = or(&pass, &and(&b[k], &b[(k + 1) % 4]));
+            pass = or(&pass, &and(&d[k], &d[(k + 1) % 4]));
+        }
+        if any(&pass) {
+            let p: [Lanes; 16] = std::array::from_fn(|k| load(ring[k], x));
+            let bright: [Lanes; 16] = std::array::from_fn(|k| gt(&p[k], &hi));
+            let dark: [Lanes; 16] = std::array::from_fn(|k| gt(&lo, &p[k]));
+            let hit = or(&arc9(&bright), &arc9(&dark));
+            if any(&hit) {
+                for (i, &h) in hit.iter().enumerate() {
+                    if h != 0 {
+                        corners.push(x + i);
+                    }
+                }
+            }
+        }
+        x += LANES;
+    }
+    // Tail: the necessary compass test only.
+    for i in x..n {
+        let v = centre[i];
+        let hi = v.saturating_add(t);
+        let lo = v.saturating_sub(t);
+        let c = [ring[0][i], ring[4][i], ring[8][i], ring[12][i]];
+        let pass = (0..4).any(|k| {
+            let (a, b) = (c[k], c[(k + 1) % 4]);
+            (a > hi && b > hi) || (a < lo && b < lo)
+        });
+        if pass {
+            corners.push(i);
+        }
+    }
+}
+
 /// Scores of row `y` for columns 3..width−3 into `scores` (width long; non-corners 0) and the
 /// corner columns into `corners`. `scores` must be zero except at the columns `corners` held on
-/// entry (they are cleared first). `flags` is scratch.
+/// entry (they are cleared first). `found` is scratch.
 fn score_row(
     img: &[u8],
     width: usize,
     y: usize,
     t: u8,
     scores: &mut [u8],
-    flags: &mut [u8],
+    found: &mut Vec<usize>,
     corners: &mut Vec<usize>,
 ) {
     for &x in corners.iter() {
@@ -118,79 +227,23 @@ fn score_row(
         let start = ((y as isize + dy) * width as isize + 3 + dx) as usize;
         &img[start..start + n]
     };
-    let centre = at(0, 0);
-    // The eight even circle pixels, clockwise from the top.
-    let even: [&[u8]; 8] = [
-        at(-3, 0),
-        at(-2, 2),
-        at(0, 3),
-        at(2, 2),
-        at(3, 0),
-        at(2, -2),
-        at(0, -3),
-        at(-2, -2),
-    ];
-    // Pass 1, branch-free over the row: an arc of 9 contiguous pixels contains at least 4
-    // cyclically consecutive even pixels, so both masks must have a run of 4.
-    for (i, f) in flags[..n].iter_mut().enumerate() {
-        let v = centre[i];
-        let hi = v.saturating_add(t);
-        let lo = v.saturating_sub(t);
-        let mut b = [0u8; 8];
-        let mut d = [0u8; 8];
-        for k in 0..8 {
-            let p = even[k][i];
-            b[k] = u8::from(p > hi);
-            d[k] = u8::from(p < lo);
-        }
-        let run4 = |e: &[u8; 8]| {
-            let pair = [
-                e[0] & e[1],
-                e[1] & e[2],
-                e[2] & e[3],
-                e[3] & e[4],
-                e[4] & e[5],
-                e[5] & e[6],
-                e[6] & e[7],
-                e[7] & e[0],
-            ];
-            (pair[0] & pair[2])
-                | (pair[1] & pair[3])
-                | (pair[2] & pair[4])
-                | (pair[3] & pair[5])
-                | (pair[4] & pair[6])
-                | (pair[5] & pair[7])
-                | (pair[6] & pair[0])
-                | (pair[7] & pair[1])
-        };
-        *f = run4(&b) | run4(&d);
-    }
-    // Pass 2: full test on the candidates.
+    let ring: [&[u8]; 16] = CIRCLE.map(|(dx, dy)| at(dy, dx));
+    found.clear();
+    screen_row(&ring, at(0, 0), n, t, found);
+    // Full test (for the tail's candidates) and score.
     let ti = i16::from(t);
     let offsets: [isize; 16] = CIRCLE.map(|(dx, dy)| dy * width as isize + dx);
-    for (chunk_index, chunk) in flags[..n].chunks(8).enumerate() {
-        let any = match <[u8; 8]>::try_from(chunk) {
-            Ok(bytes) => u64::from_ne_bytes(bytes) != 0,
-            Err(_) => chunk.iter().any(|&f| f != 0),
-        };
-        if !any {
-            continue;
+    for &i in found.iter() {
+        let x = i + 3;
+        let p = y * width + x;
+        let v = i16::from(img[p]);
+        let mut d = [0i16; 16];
+        for (dk, &o) in d.iter_mut().zip(&offsets) {
+            *dk = v - i16::from(img[(p as isize + o) as usize]);
         }
-        for (j, &f) in chunk.iter().enumerate() {
-            if f == 0 {
-                continue;
-            }
-            let x = chunk_index * 8 + j + 3;
-            let p = y * width + x;
-            let v = i16::from(img[p]);
-            let mut d = [0i16; 16];
-            for (dk, &o) in d.iter_mut().zip(&offsets) {
-                *dk = v - i16::from(img[(p as isize + o) as usize]);
-            }
-            if is_corner(&d, ti) {
-                scores[x] = score(&d, ti).clamp(0, 255) as u8;
-                corners.push(x);
-            }
+        if is_corner(&d, ti) {
+            scores[x] = score(&d, ti).clamp(0, 255) as u8;
+            corners.push(x);
         }
     }
 }
@@ -218,13 +271,13 @@ pub fn fast9(
         .map(|b| {
             let y0 = first + b * BAND_ROWS;
             let y1 = (y0 + BAND_ROWS).min(last);
-            let mut flags = vec![0u8; width];
+            let mut found = Vec::new();
             let mut out = Vec::new();
             if !nonmax {
                 let mut scores = vec![0u8; width];
                 let mut corners = Vec::new();
                 for y in y0..y1 {
-                    score_row(img, width, y, t, &mut scores, &mut flags, &mut corners);
+                    score_row(img, width, y, t, &mut scores, &mut found, &mut corners);
                     out.extend(corners.iter().map(|&x| (x, y, scores[x])));
                 }
                 return out;
@@ -241,14 +294,14 @@ pub fn fast9(
                         y,
                         t,
                         &mut ring[slot],
-                        &mut flags,
+                        &mut found,
                         &mut cols[slot],
                     );
                 }
             }
             for y in y0..y1 {
                 if y + 1 < last {
-                    score_row(img, width, y + 1, t, &mut ring[2], &mut flags, &mut cols[2]);
+                    score_row(img, width, y + 1, t, &mut ring[2], &mut found, &mut cols[2]);
                 } else {
                     for &x in &cols[2] {
                         ring[2][x] = 0;
@@ -476,6 +529,64 @@ mod tests {
                     assert_eq!(
                         fast9(&img, w, h, t, nonmax),
                         reference(&img, w, h, t, nonmax)
+                    );
+                }
+            }
+        }
+    }
+
+    /// The vector screening (whole vectors of 32 centres and the scalar tail) against the
+    /// direct reference: widths around the vector length, saturating centres (0 and 255),
+    /// thresholds 0 and 255, and images of a few levels where many pixels tie with v ± t.
+    #[test]
+    fn vector_path_matches_reference_on_edge_cases() {
+        let mut cases: Vec<(usize, usize, Vec<u8>)> = Vec::new();
+        for (i, w) in [7usize, 8, 37, 38, 39, 45, 70, 71, 72, 102, 133]
+            .into_iter()
+            .enumerate()
+        {
+            let h = 9 + i % 4;
+            let seed = 100 + i as u64;
+            cases.push((
+                w,
+                h,
+                random_u8(w, h, Channels::Gray, seed)
+                    .as_u8()
+                    .unwrap()
+                    .to_vec(),
+            ));
+            cases.push((w, h, blocks(w, h, seed)));
+            // Few levels: 0, 20, 40, ..., 240 and 255, with exact ties at t = 20.
+            let levels = random_u8(w, h, Channels::Gray, seed + 50);
+            cases.push((
+                w,
+                h,
+                levels
+                    .as_u8()
+                    .unwrap()
+                    .iter()
+                    .map(|&v| if v > 247 { 255 } else { (v / 20) * 20 })
+                    .collect(),
+            ));
+            // Black and white only.
+            cases.push((
+                w,
+                h,
+                levels
+                    .as_u8()
+                    .unwrap()
+                    .iter()
+                    .map(|&v| if v & 1 == 0 { 0 } else { 255 })
+                    .collect(),
+            ));
+        }
+        for (w, h, img) in &cases {
+            for t in [0u8, 1, 20, 40, 128, 254, 255] {
+                for nonmax in [false, true] {
+                    assert_eq!(
+                        fast9(img, *w, *h, t, nonmax),
+                        reference(img, *w, *h, t, nonmax),
+                        "{w}×{h} t {t} nonmax {nonmax}"
                     );
                 }
             }
