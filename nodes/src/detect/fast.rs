@@ -111,87 +111,134 @@ fn load(s: &[u8], at: usize) -> Lanes {
     v
 }
 
-/// Lane-wise `a & b`.
+/// Per lane, 0xFF where `a > b`, else 0.
 #[inline(always)]
-fn and(a: &Lanes, b: &Lanes) -> Lanes {
-    std::array::from_fn(|i| a[i] & b[i])
-}
-
-/// Lane-wise `a | b`.
-#[inline(always)]
-fn or(a: &Lanes, b: &Lanes) -> Lanes {
-    std::array::from_fn(|i| a[i] | b[i])
+fn gt(a: &Lanes, b: &Lanes) -> Lanes {
+    let mut r = [0u8; LANES];
+    for i in 0..LANES {
+        r[i] = if a[i] > b[i] { 0xFF } else { 0 };
+    }
+    r
 }
 
 /// Whether any lane is non-zero.
 #[inline(always)]
 fn any(a: &Lanes) -> bool {
-    a.iter().fold(0u8, |acc, &v| acc | v) != 0
+    let mut acc = 0u8;
+    for &v in a {
+        acc |= v;
+    }
+    acc != 0
 }
 
 /// Per lane, 0xFF where the 16 circular masks `m` (0 or 0xFF per lane) hold 9 consecutive
 /// set entries, else 0: runs of 2, 4, 8, then 8 + 1, by doubling.
 #[inline(always)]
 fn arc9(m: &[Lanes; 16]) -> Lanes {
-    let m2: [Lanes; 16] = std::array::from_fn(|k| and(&m[k], &m[(k + 1) % 16]));
-    let m4: [Lanes; 16] = std::array::from_fn(|k| and(&m2[k], &m2[(k + 2) % 16]));
-    let m8: [Lanes; 16] = std::array::from_fn(|k| and(&m4[k], &m4[(k + 4) % 16]));
+    let mut m2 = [[0u8; LANES]; 16];
+    for k in 0..16 {
+        for i in 0..LANES {
+            m2[k][i] = m[k][i] & m[(k + 1) % 16][i];
+        }
+    }
+    let mut m4 = [[0u8; LANES]; 16];
+    for k in 0..16 {
+        for i in 0..LANES {
+            m4[k][i] = m2[k][i] & m2[(k + 2) % 16][i];
+        }
+    }
     let mut acc = [0u8; LANES];
     for k in 0..16 {
-        acc = or(&acc, &and(&m8[k], &m[(k + 8) % 16]));
+        for i in 0..LANES {
+            acc[i] |= m4[k][i] & m4[(k + 4) % 16][i] & m[(k + 8) % 16][i];
+        }
     }
     acc
+}
+
+/// Corner test of the [`LANES`] centres from column `x`; pushes `x + i` for the corners with
+/// `x + i ≥ from`.
+#[inline(always)]
+fn screen_vector(
+    ring: &[&[u8]; 16],
+    centre: &[u8],
+    x: usize,
+    from: usize,
+    t: u8,
+    corners: &mut Vec<usize>,
+) {
+    let v = load(centre, x);
+    let mut hi = [0u8; LANES];
+    let mut lo = [0u8; LANES];
+    for i in 0..LANES {
+        hi[i] = v[i].saturating_add(t);
+        lo[i] = v[i].saturating_sub(t);
+    }
+    // Pixels 0, 4, 8, 12: an arc of 9 contains two adjacent ones.
+    let c = [
+        load(ring[0], x),
+        load(ring[4], x),
+        load(ring[8], x),
+        load(ring[12], x),
+    ];
+    let mut pass = [0u8; LANES];
+    for k in 0..4 {
+        let (b0, b1) = (gt(&c[k], &hi), gt(&c[(k + 1) % 4], &hi));
+        let (d0, d1) = (gt(&lo, &c[k]), gt(&lo, &c[(k + 1) % 4]));
+        for i in 0..LANES {
+            pass[i] |= (b0[i] & b1[i]) | (d0[i] & d1[i]);
+        }
+    }
+    if !any(&pass) {
+        return;
+    }
+    let mut m = [[0u8; LANES]; 16];
+    for (k, mk) in m.iter_mut().enumerate() {
+        *mk = gt(&load(ring[k], x), &hi);
+    }
+    let bright = arc9(&m);
+    for (k, mk) in m.iter_mut().enumerate() {
+        *mk = gt(&lo, &load(ring[k], x));
+    }
+    let dark = arc9(&m);
+    let mut hit = [0u8; LANES];
+    for i in 0..LANES {
+        hit[i] = bright[i] | dark[i];
+    }
+    if any(&hit) {
+        for (i, &h) in hit.iter().enumerate() {
+            if h != 0 && x + i >= from {
+                corners.push(x + i);
+            }
+        }
+    }
 }
 
 /// Corner columns of one row: `ring[k]` is the row of circle pixel `k` (the slice starts at
 /// its offset from the first centre column), `centre` the row of centres, all at least `n`
 /// long. Pushes into `corners` the centre indices `i < n` (ascending) that are FAST-9 corners
-/// with threshold `t`, except in the last `n % LANES` columns, where it pushes candidates that
-/// passed only a necessary test (the caller runs the full test on every pushed index).
+/// with threshold `t` when `n ≥ LANES`; for shorter rows, candidates that passed a necessary
+/// test (the caller runs the full test on every pushed index).
 ///
-/// Vectors of [`LANES`] centres: pixels 0, 4, 8, 12 (an arc of 9 contains two adjacent ones,
-/// both brighter than `v + t` or both darker than `v − t`) reject most vectors; the rest get
-/// the 16 comparisons and a search for 9 consecutive set masks.
+/// Vectors of [`LANES`] centres (the last one overlapping its predecessor): pixels 0, 4, 8, 12
+/// (an arc of 9 contains two adjacent ones, both brighter than `v + t` or both darker than
+/// `v − t`) reject most vectors; the rest get the 16 comparisons and a search for 9
+/// consecutive set masks.
 #[multiversion::multiversion(targets("x86_64+avx2", "x86_64+sse4.1"))]
 fn screen_row(ring: &[&[u8]; 16], centre: &[u8], n: usize, t: u8, corners: &mut Vec<usize>) {
-    let gt = |a: &Lanes, b: &Lanes| -> Lanes {
-        std::array::from_fn(|i| 0u8.wrapping_sub(u8::from(a[i] > b[i])))
-    };
-    let mut x = 0;
-    while x + LANES <= n {
-        let v = load(centre, x);
-        let hi: Lanes = std::array::from_fn(|i| v[i].saturating_add(t));
-        let lo: Lanes = std::array::from_fn(|i| v[i].saturating_sub(t));
-        let compass = [
-            load(ring[0], x),
-            load(ring[4], x),
-            load(ring[8], x),
-            load(ring[12], x),
-        ];
-        let b: [Lanes; 4] = std::array::from_fn(|k| gt(&compass[k], &hi));
-        let d: [Lanes; 4] = std::array::from_fn(|k| gt(&lo, &compass[k]));
-        let mut pass = [0u8; LANES];
-        for k in 0..4 {
-            pass = or(&pass, &and(&b[k], &b[(k + 1) % 4]));
-            pass = or(&pass, &and(&d[k], &d[(k + 1) % 4]));
+    if n >= LANES {
+        let mut x = 0;
+        while x + LANES <= n {
+            screen_vector(ring, centre, x, x, t, corners);
+            x += LANES;
         }
-        if any(&pass) {
-            let p: [Lanes; 16] = std::array::from_fn(|k| load(ring[k], x));
-            let bright: [Lanes; 16] = std::array::from_fn(|k| gt(&p[k], &hi));
-            let dark: [Lanes; 16] = std::array::from_fn(|k| gt(&lo, &p[k]));
-            let hit = or(&arc9(&bright), &arc9(&dark));
-            if any(&hit) {
-                for (i, &h) in hit.iter().enumerate() {
-                    if h != 0 {
-                        corners.push(x + i);
-                    }
-                }
-            }
+        if x < n {
+            screen_vector(ring, centre, n - LANES, x, t, corners);
         }
-        x += LANES;
+        return;
     }
-    // Tail: the necessary compass test only.
-    for i in x..n {
+    // Short rows: the necessary compass test only.
+    for i in 0..n {
         let v = centre[i];
         let hi = v.saturating_add(t);
         let lo = v.saturating_sub(t);
