@@ -1,10 +1,10 @@
 //! `detect.fast`: the FAST-9 corner detector (16-pixel circle), compatible with OpenCV's
 //! `FastFeatureDetector` (`TYPE_9_16`).
 //!
-//! [`fast9`] scans each row in two passes: a branch-free, vectorizable pass that keeps only
-//! pixels where two adjacent compass points (of the four at distance 3) are both brighter than
-//! `v + t` or both darker than `v − t` (necessary for any arc of 9), then the full arc test and
-//! the score on those few candidates. Scores go to a small per-band buffer and non-maximum
+//! [`fast9`] scans each row in vectors of [`LANES`] centres with saturated u8 arithmetic: the
+//! four compass pixels reject most vectors (an arc of 9 contains two adjacent ones, both
+//! brighter than `v + t` or both darker than `v − t`); the others get, per lane, the best arc's
+//! smallest saturated difference, which decides the corner test and is its score. Scores go to a small per-band buffer and non-maximum
 //! suppression compares each corner with its 8 neighbours. Bands of [`BAND_ROWS`] rows run in
 //! parallel and recompute the score rows just outside them, so the result does not depend on the
 //! thread count.
@@ -111,12 +111,22 @@ fn load(s: &[u8], at: usize) -> Lanes {
     v
 }
 
-/// Per lane, 0xFF where `a > b`, else 0.
+/// Lane-wise `a − b`, saturating at 0.
 #[inline(always)]
-fn gt(a: &Lanes, b: &Lanes) -> Lanes {
+fn sub_sat(a: &Lanes, b: &Lanes) -> Lanes {
     let mut r = [0u8; LANES];
     for i in 0..LANES {
-        r[i] = if a[i] > b[i] { 0xFF } else { 0 };
+        r[i] = a[i].saturating_sub(b[i]);
+    }
+    r
+}
+
+/// Lane-wise minimum.
+#[inline(always)]
+fn min(a: &Lanes, b: &Lanes) -> Lanes {
+    let mut r = [0u8; LANES];
+    for i in 0..LANES {
+        r[i] = a[i].min(b[i]);
     }
     r
 }
@@ -131,40 +141,46 @@ fn any(a: &Lanes) -> bool {
     acc != 0
 }
 
-/// Per lane, 0xFF where the 16 circular masks `m` (0 or 0xFF per lane) hold 9 consecutive
-/// set entries, else 0: runs of 2, 4, 8, then 8 + 1, by doubling.
+/// Per lane, the largest minimum of 9 circularly consecutive entries of `m` (clobbered):
+/// minima of 2, then 4 in place, then windows of 9 as `k..k+4`, `k+4..k+8`, `k+5..k+9`.
 #[inline(always)]
-fn arc9(m: &[Lanes; 16]) -> Lanes {
-    let mut m2 = [[0u8; LANES]; 16];
+fn best_arc9(m: &mut [Lanes; 16]) -> Lanes {
+    let m0 = m[0];
+    for k in 0..15 {
+        m[k] = min(&m[k], &m[k + 1]);
+    }
+    m[15] = min(&m[15], &m0);
+    let (m0, m1) = (m[0], m[1]);
+    for k in 0..14 {
+        m[k] = min(&m[k], &m[k + 2]);
+    }
+    m[14] = min(&m[14], &m0);
+    m[15] = min(&m[15], &m1);
+    let mut best = [0u8; LANES];
     for k in 0..16 {
+        let w = min(&min(&m[k], &m[(k + 4) % 16]), &m[(k + 5) % 16]);
         for i in 0..LANES {
-            m2[k][i] = m[k][i] & m[(k + 1) % 16][i];
+            best[i] = best[i].max(w[i]);
         }
     }
-    let mut m4 = [[0u8; LANES]; 16];
-    for k in 0..16 {
-        for i in 0..LANES {
-            m4[k][i] = m2[k][i] & m2[(k + 2) % 16][i];
-        }
-    }
-    let mut acc = [0u8; LANES];
-    for k in 0..16 {
-        for i in 0..LANES {
-            acc[i] |= m4[k][i] & m4[(k + 4) % 16][i] & m[(k + 8) % 16][i];
-        }
-    }
-    acc
+    best
 }
 
-/// Corner test of the [`LANES`] centres from column `x`; pushes `x + i` for the corners with
-/// `x + i ≥ from`.
+/// FAST test and score of the [`LANES`] centres from column `x`: writes `scores[x + i]` and
+/// pushes `x + i` for the corners with `x + i ≥ from` (lanes below `from` were done before and
+/// get the same score again).
+///
+/// With `B = max over arcs of 9 of min (p − v)⁺` and `D` the same for `(v − p)⁺`, the centre
+/// is a corner exactly when `max(B, D) > t`, and its score (OpenCV's `cornerScore`, see
+/// [`score`]) is then `max(B, D) − 1`: saturated u8 arithmetic, no comparisons.
 #[inline(always)]
-fn screen_vector(
+fn fast_vector(
     ring: &[&[u8]; 16],
     centre: &[u8],
     x: usize,
     from: usize,
     t: u8,
+    scores: &mut [u8],
     corners: &mut Vec<usize>,
 ) {
     let v = load(centre, x);
@@ -174,19 +190,26 @@ fn screen_vector(
         hi[i] = v[i].saturating_add(t);
         lo[i] = v[i].saturating_sub(t);
     }
-    // Pixels 0, 4, 8, 12: an arc of 9 contains two adjacent ones.
+    // Pixels 0, 4, 8, 12: an arc of 9 contains two adjacent ones, both > v + t or both
+    // < v − t (non-zero saturated differences).
     let c = [
         load(ring[0], x),
         load(ring[4], x),
         load(ring[8], x),
         load(ring[12], x),
     ];
+    let mut bright = [[0u8; LANES]; 4];
+    let mut dark = [[0u8; LANES]; 4];
+    for k in 0..4 {
+        bright[k] = sub_sat(&c[k], &hi);
+        dark[k] = sub_sat(&lo, &c[k]);
+    }
     let mut pass = [0u8; LANES];
     for k in 0..4 {
-        let (b0, b1) = (gt(&c[k], &hi), gt(&c[(k + 1) % 4], &hi));
-        let (d0, d1) = (gt(&lo, &c[k]), gt(&lo, &c[(k + 1) % 4]));
+        let b = min(&bright[k], &bright[(k + 1) % 4]);
+        let d = min(&dark[k], &dark[(k + 1) % 4]);
         for i in 0..LANES {
-            pass[i] |= (b0[i] & b1[i]) | (d0[i] & d1[i]);
+            pass[i] |= b[i] | d[i];
         }
     }
     if !any(&pass) {
@@ -194,18 +217,23 @@ fn screen_vector(
     }
     let mut m = [[0u8; LANES]; 16];
     for (k, mk) in m.iter_mut().enumerate() {
-        *mk = gt(&load(ring[k], x), &hi);
+        *mk = sub_sat(&load(ring[k], x), &v);
     }
-    let bright = arc9(&m);
+    let b = best_arc9(&mut m);
     for (k, mk) in m.iter_mut().enumerate() {
-        *mk = gt(&lo, &load(ring[k], x));
+        *mk = sub_sat(&v, &load(ring[k], x));
     }
-    let dark = arc9(&m);
+    let d = best_arc9(&mut m);
     let mut hit = [0u8; LANES];
+    let mut score = [0u8; LANES];
     for i in 0..LANES {
-        hit[i] = bright[i] | dark[i];
+        let s = b[i].max(d[i]);
+        let corner = s > t;
+        hit[i] = u8::from(corner);
+        score[i] = if corner { s - 1 } else { 0 };
     }
     if any(&hit) {
+        scores[x..x + LANES].copy_from_slice(&score);
         for (i, &h) in hit.iter().enumerate() {
             if h != 0 && x + i >= from {
                 corners.push(x + i);
@@ -214,42 +242,29 @@ fn screen_vector(
     }
 }
 
-/// Corner columns of one row: `ring[k]` is the row of circle pixel `k` (the slice starts at
-/// its offset from the first centre column), `centre` the row of centres, all at least `n`
-/// long. Pushes into `corners` the centre indices `i < n` (ascending) that are FAST-9 corners
-/// with threshold `t` when `n ≥ LANES`; for shorter rows, candidates that passed a necessary
-/// test (the caller runs the full test on every pushed index).
+/// FAST-9 corners of one row of at least [`LANES`] centres: `ring[k]` is the row of circle
+/// pixel `k` (the slice starts at its offset from the first centre), `centre` the row of
+/// centres, all `n` long or longer. Writes the scores of the corners into `scores` (which must
+/// be zero at the others) and pushes their indices, ascending, into `corners`.
 ///
-/// Vectors of [`LANES`] centres (the last one overlapping its predecessor): pixels 0, 4, 8, 12
-/// (an arc of 9 contains two adjacent ones, both brighter than `v + t` or both darker than
-/// `v − t`) reject most vectors; the rest get the 16 comparisons and a search for 9
-/// consecutive set masks.
+/// Vectors of [`LANES`] centres, the last one overlapping its predecessor; see
+/// [`fast_vector`].
 #[multiversion::multiversion(targets("x86_64+avx2", "x86_64+sse4.1"))]
-fn screen_row(ring: &[&[u8]; 16], centre: &[u8], n: usize, t: u8, corners: &mut Vec<usize>) {
-    if n >= LANES {
-        let mut x = 0;
-        while x + LANES <= n {
-            screen_vector(ring, centre, x, x, t, corners);
-            x += LANES;
-        }
-        if x < n {
-            screen_vector(ring, centre, n - LANES, x, t, corners);
-        }
-        return;
+fn fast_row(
+    ring: &[&[u8]; 16],
+    centre: &[u8],
+    n: usize,
+    t: u8,
+    scores: &mut [u8],
+    corners: &mut Vec<usize>,
+) {
+    let mut x = 0;
+    while x + LANES <= n {
+        fast_vector(ring, centre, x, x, t, scores, corners);
+        x += LANES;
     }
-    // Short rows: the necessary compass test only.
-    for i in 0..n {
-        let v = centre[i];
-        let hi = v.saturating_add(t);
-        let lo = v.saturating_sub(t);
-        let c = [ring[0][i], ring[4][i], ring[8][i], ring[12][i]];
-        let pass = (0..4).any(|k| {
-            let (a, b) = (c[k], c[(k + 1) % 4]);
-            (a > hi && b > hi) || (a < lo && b < lo)
-        });
-        if pass {
-            corners.push(i);
-        }
+    if x < n && n >= LANES {
+        fast_vector(ring, centre, n - LANES, x, t, scores, corners);
     }
 }
 
@@ -274,14 +289,17 @@ fn score_row(
         let start = ((y as isize + dy) * width as isize + 3 + dx) as usize;
         &img[start..start + n]
     };
-    let ring: [&[u8]; 16] = CIRCLE.map(|(dx, dy)| at(dy, dx));
-    found.clear();
-    screen_row(&ring, at(0, 0), n, t, found);
-    // Full test (for the tail's candidates) and score.
+    if n >= LANES {
+        let ring: [&[u8]; 16] = CIRCLE.map(|(dx, dy)| at(dy, dx));
+        found.clear();
+        fast_row(&ring, at(0, 0), n, t, &mut scores[3..3 + n], found);
+        corners.extend(found.iter().map(|&i| i + 3));
+        return;
+    }
+    // Narrow images: every pixel, scalar.
     let ti = i16::from(t);
     let offsets: [isize; 16] = CIRCLE.map(|(dx, dy)| dy * width as isize + dx);
-    for &i in found.iter() {
-        let x = i + 3;
+    for (x, s) in scores.iter_mut().enumerate().take(3 + n).skip(3) {
         let p = y * width + x;
         let v = i16::from(img[p]);
         let mut d = [0i16; 16];
@@ -289,7 +307,7 @@ fn score_row(
             *dk = v - i16::from(img[(p as isize + o) as usize]);
         }
         if is_corner(&d, ti) {
-            scores[x] = score(&d, ti).clamp(0, 255) as u8;
+            *s = score(&d, ti).clamp(0, 255) as u8;
             corners.push(x);
         }
     }
@@ -409,8 +427,10 @@ all < v − t. Its score is the largest threshold at which it is still a corner 
 `nonmax_suppression`, a corner is kept only if its score is strictly greater than the scores of
 its 8 neighbours (non-corners score 0).
 
-Speed: each row is first screened branch-free with the four compass pixels (an arc of 9 always
-contains two adjacent compass points), then candidates get the full test.
+Speed: rows are processed 32 centres at a time in saturated u8 arithmetic (vectorized, AVX2
+when available): the four compass pixels reject most vectors (an arc of 9 always contains two
+adjacent compass points); for the rest, the largest over 9-arcs of the smallest (p − v)⁺ or
+(v − p)⁺ gives both the test (> t) and the score (minus 1), with no per-pixel branches.
 
 Keypoints come in raster order with size 7, angle −1, response = score, octave 0, matching
 `cv::FastFeatureDetector::create(t, nonmax, TYPE_9_16)`. Gray u8 only.
