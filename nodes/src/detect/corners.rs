@@ -109,8 +109,6 @@ impl DerivRows {
         // Vertical pass into the interior of vs (smooth, for dx) and vd (deriv, for dy).
         let vs_in = &mut self.vs[pad..pad + width];
         let vd_in = &mut self.vd[pad..pad + width];
-        vs_in.fill(0.0);
-        vd_in.fill(0.0);
         for (i, &kd) in self.deriv.iter().enumerate() {
             let sy = map_index(
                 y as isize + i as isize - r as isize,
@@ -119,11 +117,7 @@ impl DerivRows {
             )
             .unwrap_or(0);
             let row = &src[sy * width..(sy + 1) * width];
-            let ks = self.smooth[i];
-            for ((s, d), &p) in vs_in.iter_mut().zip(vd_in.iter_mut()).zip(row) {
-                *s += ks * p;
-                *d += kd * p;
-            }
+            taps_pair(vs_in, vd_in, row, row, self.smooth[i], kd, i == 0);
         }
         // Borders of the padded rows.
         for k in (0..pad).chain(pad + width..pad + width + self.columns.after()) {
@@ -132,19 +126,75 @@ impl DerivRows {
             self.vd[k] = self.vd[s];
         }
         // Horizontal pass.
-        dx.fill(0.0);
-        dy.fill(0.0);
-        let taps = self.deriv.len();
-        for i in 0..taps {
-            let kd = self.deriv[i];
-            let ks = self.smooth[i];
-            let vs = &self.vs[i..i + width];
-            let vd = &self.vd[i..i + width];
-            for (((gx, gy), &s), &d) in dx.iter_mut().zip(dy.iter_mut()).zip(vs).zip(vd) {
-                *gx += kd * s;
-                *gy += ks * d;
-            }
+        for i in 0..self.deriv.len() {
+            taps_pair(
+                dx,
+                dy,
+                &self.vs[i..i + width],
+                &self.vd[i..i + width],
+                self.deriv[i],
+                self.smooth[i],
+                i == 0,
+            );
         }
+    }
+}
+
+/// One tap of two filters: `a[i] (+)= ka · pa[i]`, `b[i] (+)= kb · pb[i]` (assignment for the
+/// first tap: the sums start at the first product, as `0 + p` is `p`).
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn taps_pair(a: &mut [f32], b: &mut [f32], pa: &[f32], pb: &[f32], ka: f32, kb: f32, first: bool) {
+    let n = a.len().min(b.len()).min(pa.len()).min(pb.len());
+    let (a, b, pa, pb) = (&mut a[..n], &mut b[..n], &pa[..n], &pb[..n]);
+    if first {
+        for (((x, y), &p), &q) in a.iter_mut().zip(b.iter_mut()).zip(pa).zip(pb) {
+            *x = ka * p;
+            *y = kb * q;
+        }
+    } else {
+        for (((x, y), &p), &q) in a.iter_mut().zip(b.iter_mut()).zip(pa).zip(pb) {
+            *x += ka * p;
+            *y += kb * q;
+        }
+    }
+}
+
+/// Scaled gradient products of one row into the interiors of three padded f64 rows
+/// (`xx`, `xy`, `yy` from index `pad`): `(gx·s)²`, `(gx·s)(gy·s)`, `(gy·s)²` in f32.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn products(dx: &[f32], dy: &[f32], scale: f32, xx: &mut [f64], xy: &mut [f64], yy: &mut [f64]) {
+    let n = dx
+        .len()
+        .min(dy.len())
+        .min(xx.len())
+        .min(xy.len())
+        .min(yy.len());
+    for i in 0..n {
+        let gx = dx[i] * scale;
+        let gy = dy[i] * scale;
+        xx[i] = f64::from(gx * gx);
+        xy[i] = f64::from(gx * gy);
+        yy[i] = f64::from(gy * gy);
+    }
+}
+
+/// Horizontal window sums: `out[x] = p[x] + p[x+1] + … + p[x+block−1]`, left to right.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn window_sums(p: &[f64], block: usize, out: &mut [f64]) {
+    let n = out.len();
+    out.copy_from_slice(&p[..n]);
+    for i in 1..block {
+        for (o, &v) in out.iter_mut().zip(&p[i..i + n]) {
+            *o += v;
+        }
+    }
+}
+
+/// `acc[i] += v[i]`.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn add_to(acc: &mut [f64], v: &[f64]) {
+    for (a, &b) in acc.iter_mut().zip(v) {
+        *a += b;
     }
 }
 
@@ -188,94 +238,85 @@ pub fn corner_response(
             let rows = band.len() / width;
             let mut deriv = DerivRows::new(width, ksize);
             let mut d = vec![0.0f32; 2 * width];
-            // Products, padded: xx, xy, yy interleaved.
-            let mut prod = vec![0.0f32; 3 * padded];
-            // Ring of horizontal sums, `block` rows of 3 × width f64.
+            // Products, padded: xx, xy, yy planes.
+            let mut prod = vec![0.0f64; 3 * padded];
+            // Ring of horizontal sums, `block` rows of the xx, xy, yy planes (`width` each).
             let mut ring = vec![0.0f64; block * 3 * width];
+            let mut sums = vec![0.0f64; 3 * width];
             let first = y0 as isize - before as isize;
             let last = (y0 + rows + after) as isize;
             for j in first..last {
                 let sy = map_index(j, height, BorderMode::Reflect101).unwrap_or(0);
                 deriv.row(src, width, height, sy, &mut d);
                 let (dx, dy) = d.split_at(width);
-                let inner = &mut prod[3 * before..3 * (before + width)];
-                for ((p, &gx), &gy) in inner.chunks_exact_mut(3).zip(dx).zip(dy) {
-                    let gx = gx * scale;
-                    let gy = gy * scale;
-                    p[0] = gx * gx;
-                    p[1] = gx * gy;
-                    p[2] = gy * gy;
+                {
+                    let (xx, rest) = prod.split_at_mut(padded);
+                    let (xy, yy) = rest.split_at_mut(padded);
+                    let inner = before..before + width;
+                    products(
+                        dx,
+                        dy,
+                        scale,
+                        &mut xx[inner.clone()],
+                        &mut xy[inner.clone()],
+                        &mut yy[inner],
+                    );
                 }
                 for kpos in (0..before).chain(before + width..padded) {
                     let s = columns.source(kpos).unwrap_or(0) + before;
                     for c in 0..3 {
-                        prod[3 * kpos + c] = prod[3 * s + c];
+                        prod[c * padded + kpos] = prod[c * padded + s];
                     }
                 }
                 let slot = (j - first) as usize % block;
                 let hs = &mut ring[slot * 3 * width..(slot + 1) * 3 * width];
-                if block == 2 {
-                    for (x, h) in hs.chunks_exact_mut(3).enumerate() {
-                        let p = &prod[3 * x..3 * x + 6];
-                        h[0] = f64::from(p[0]) + f64::from(p[3]);
-                        h[1] = f64::from(p[1]) + f64::from(p[4]);
-                        h[2] = f64::from(p[2]) + f64::from(p[5]);
-                    }
-                } else {
-                    for (x, h) in hs.chunks_exact_mut(3).enumerate() {
-                        let mut s = [0.0f64; 3];
-                        for p in prod[3 * x..3 * (x + block)].chunks_exact(3) {
-                            s[0] += f64::from(p[0]);
-                            s[1] += f64::from(p[1]);
-                            s[2] += f64::from(p[2]);
-                        }
-                        h.copy_from_slice(&s);
-                    }
+                for (c, h) in hs.chunks_exact_mut(width).enumerate() {
+                    window_sums(&prod[c * padded..(c + 1) * padded], block, h);
                 }
                 let done = (j - first) as usize + 1;
                 if done >= block {
                     let y = done - block; // output row within the band
                     let out_row = &mut band[y * width..(y + 1) * width];
-                    respond_row(&ring, block, width, method, k, out_row);
+                    // Column sums over the ring in slot order.
+                    let n = 3 * width;
+                    sums.copy_from_slice(&ring[..n]);
+                    for r in 1..block {
+                        add_to(&mut sums, &ring[r * n..(r + 1) * n]);
+                    }
+                    let (sxx, rest) = sums.split_at(width);
+                    let (sxy, syy) = rest.split_at(width);
+                    match method {
+                        CornerMethod::Harris => harris_row(sxx, sxy, syy, k, out_row),
+                        CornerMethod::ShiTomasi => min_eigen_row(sxx, sxy, syy, out_row),
+                    }
                 }
             }
         });
     out
 }
 
-/// Sums the `block` rows of horizontal sums and writes the response of one output row.
-fn respond_row(
-    ring: &[f64],
-    block: usize,
-    width: usize,
-    method: CornerMethod,
-    k: f64,
-    out: &mut [f32],
-) {
-    let n = 3 * width;
-    let mut sums = ring[..n].to_vec();
-    for r in 1..block {
-        for (s, &v) in sums.iter_mut().zip(&ring[r * n..(r + 1) * n]) {
-            *s += v;
-        }
+/// Harris response of one row from the f64 window sums (rounded to f32 first, as OpenCV's
+/// f32 covariance image): `a·c − b² − k·(a + c)²` in f64.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn harris_row(sxx: &[f64], sxy: &[f64], syy: &[f64], k: f64, out: &mut [f32]) {
+    let n = out.len().min(sxx.len()).min(sxy.len()).min(syy.len());
+    for i in 0..n {
+        let a = f64::from(sxx[i] as f32);
+        let b = f64::from(sxy[i] as f32);
+        let c = f64::from(syy[i] as f32);
+        out[i] = (a * c - b * b - k * (a + c) * (a + c)) as f32;
     }
-    match method {
-        CornerMethod::Harris => {
-            for (o, s) in out.iter_mut().zip(sums.chunks_exact(3)) {
-                let a = f64::from(s[0] as f32);
-                let b = f64::from(s[1] as f32);
-                let c = f64::from(s[2] as f32);
-                *o = (a * c - b * b - k * (a + c) * (a + c)) as f32;
-            }
-        }
-        CornerMethod::ShiTomasi => {
-            for (o, s) in out.iter_mut().zip(sums.chunks_exact(3)) {
-                let a = (s[0] as f32) * 0.5;
-                let b = s[1] as f32;
-                let c = (s[2] as f32) * 0.5;
-                *o = (a + c) - ((a - c) * (a - c) + b * b).sqrt();
-            }
-        }
+}
+
+/// Smaller eigenvalue of one row from the f64 window sums (rounded to f32), in f32.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn min_eigen_row(sxx: &[f64], sxy: &[f64], syy: &[f64], out: &mut [f32]) {
+    let n = out.len().min(sxx.len()).min(sxy.len()).min(syy.len());
+    for i in 0..n {
+        let a = (sxx[i] as f32) * 0.5;
+        let b = sxy[i] as f32;
+        let c = (syy[i] as f32) * 0.5;
+        out[i] = (a + c) - ((a - c) * (a - c) + b * b).sqrt();
     }
 }
 
@@ -295,35 +336,47 @@ pub fn select_corners(
     if width < 3 || height < 3 || response.len() != width * height {
         return Vec::new();
     }
-    let max = response
-        .iter()
-        .copied()
-        .filter(|v| !v.is_nan())
-        .fold(f32::NEG_INFINITY, f32::max);
+    let max = max_ordered(response);
     let threshold = (f64::from(max) * quality_level) as f32;
     let keep = |v: f32| if v > threshold { v } else { 0.0 };
-    let mut candidates: Vec<(f32, usize)> = (1..height - 1)
+    // Rows in fixed bands; pixels above the threshold are rare, so a vector scan finds them
+    // and the 3×3 test runs only there.
+    let inner_rows = height - 2;
+    let bands = inner_rows.div_ceil(SELECT_BAND_ROWS);
+    let mut candidates: Vec<(f32, usize)> = (0..bands)
         .into_par_iter()
-        .map(|y| {
+        .map(|b| {
+            let y0 = 1 + b * SELECT_BAND_ROWS;
+            let y1 = (y0 + SELECT_BAND_ROWS).min(height - 1);
             let mut found = Vec::new();
-            for x in 1..width - 1 {
-                let v = keep(response[y * width + x]);
-                if v == 0.0 || v.is_nan() {
-                    continue;
-                }
-                let mut is_max = true;
-                // Dilation of the thresholded image (outside the image does not count).
-                'n: for yy in y - 1..=y + 1 {
-                    let row = &response[yy * width..(yy + 1) * width];
-                    for &r in &row[x - 1..=x + 1] {
-                        if keep(r) > v {
-                            is_max = false;
-                            break 'n;
+            let mut above = Vec::new();
+            for y in y0..y1 {
+                above.clear();
+                above_threshold(
+                    &response[y * width + 1..(y + 1) * width - 1],
+                    threshold,
+                    &mut above,
+                );
+                for &i in &above {
+                    let x = i + 1;
+                    let v = keep(response[y * width + x]);
+                    if v == 0.0 || v.is_nan() {
+                        continue;
+                    }
+                    let mut is_max = true;
+                    // Dilation of the thresholded image (outside the image does not count).
+                    'n: for yy in y - 1..=y + 1 {
+                        let row = &response[yy * width..(yy + 1) * width];
+                        for &r in &row[x - 1..=x + 1] {
+                            if keep(r) > v {
+                                is_max = false;
+                                break 'n;
+                            }
                         }
                     }
-                }
-                if is_max {
-                    found.push((v, y * width + x));
+                    if is_max {
+                        found.push((v, y * width + x));
+                    }
                 }
             }
             found
@@ -376,6 +429,60 @@ pub fn select_corners(
         );
     }
     kept
+}
+
+/// Rows per parallel band of the candidate search.
+const SELECT_BAND_ROWS: usize = 64;
+
+/// The largest non-NaN value (−∞ when there is none), in lanes.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn max_ordered(v: &[f32]) -> f32 {
+    const L: usize = 16;
+    let mut m = [f32::NEG_INFINITY; L];
+    let chunks = v.chunks_exact(L);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for i in 0..L {
+            // NaN compares false and is skipped.
+            if c[i] > m[i] {
+                m[i] = c[i];
+            }
+        }
+    }
+    let mut best = f32::NEG_INFINITY;
+    for &x in m.iter().chain(rest) {
+        if x > best {
+            best = x;
+        }
+    }
+    best
+}
+
+/// Pushes the indices `i` with `row[i] > threshold`, ascending.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn above_threshold(row: &[f32], threshold: f32, out: &mut Vec<usize>) {
+    const L: usize = 16;
+    let chunks = row.chunks_exact(L);
+    let tail = chunks.remainder();
+    for (ci, c) in chunks.enumerate() {
+        let mut any = false;
+        for &v in c {
+            any |= v > threshold;
+        }
+        if any {
+            for (j, &v) in c.iter().enumerate() {
+                if v > threshold {
+                    out.push(ci * L + j);
+                }
+            }
+        }
+    }
+    let base = row.len() - tail.len();
+    for (j, &v) in tail.iter().enumerate() {
+        if v > threshold {
+            out.push(base + j);
+        }
+    }
 }
 
 /// Bilinear sample of `src` at (x, y), coordinates clamped to the image (border replicate).
@@ -916,5 +1023,445 @@ mod tests {
             .is_err()
         );
         assert!(Corners::new(CornersParams { block_size: 0, ..p }).is_err());
+    }
+
+    // The straightforward implementation the vectorized one replaced (per-pixel interleaved
+    // products, a fresh sum row per output row, a scalar scan of every pixel in the
+    // selection), kept as the reference the fast path must equal bit for bit.
+    /// Separable Sobel derivatives of one row `y` of `src` (`width` wide), border reflect101:
+    /// `dx` and `dy` (unscaled), using the scratch `vs` / `vd` (padded vertical sums).
+    struct RefDerivRows {
+        smooth: Vec<f32>,
+        deriv: Vec<f32>,
+        /// Vertical smoothing sums, padded.
+        vs: Vec<f32>,
+        /// Vertical derivative sums, padded.
+        vd: Vec<f32>,
+        columns: BorderTable,
+    }
+
+    impl RefDerivRows {
+        fn new(width: usize, ksize: usize) -> RefDerivRows {
+            let deriv: Vec<f32> = deriv_kernel(ksize, 1).iter().map(|&v| v as f32).collect();
+            // The smoothing kernel, centred in a kernel as long as `deriv` (ksize 1: [0, 1, 0]).
+            let raw = deriv_kernel(ksize, 0);
+            let offset = (deriv.len() - raw.len().min(deriv.len())) / 2;
+            let mut smooth = vec![0.0f32; deriv.len()];
+            for (s, &v) in smooth[offset..].iter_mut().zip(&raw) {
+                *s = v as f32;
+            }
+            let r = deriv.len() / 2;
+            let columns = BorderTable::symmetric(width, r, BorderMode::Reflect101);
+            let padded = columns.padded_len();
+            RefDerivRows {
+                smooth,
+                deriv,
+                vs: vec![0.0; padded],
+                vd: vec![0.0; padded],
+                columns,
+            }
+        }
+
+        fn row(&mut self, src: &[f32], width: usize, height: usize, y: usize, dx: &mut [f32]) {
+            let (dx, dy) = dx.split_at_mut(width);
+            let r = self.deriv.len() / 2;
+            let pad = self.columns.before();
+            // Vertical pass into the interior of vs (smooth, for dx) and vd (deriv, for dy).
+            let vs_in = &mut self.vs[pad..pad + width];
+            let vd_in = &mut self.vd[pad..pad + width];
+            vs_in.fill(0.0);
+            vd_in.fill(0.0);
+            for (i, &kd) in self.deriv.iter().enumerate() {
+                let sy = map_index(
+                    y as isize + i as isize - r as isize,
+                    height,
+                    BorderMode::Reflect101,
+                )
+                .unwrap_or(0);
+                let row = &src[sy * width..(sy + 1) * width];
+                let ks = self.smooth[i];
+                for ((s, d), &p) in vs_in.iter_mut().zip(vd_in.iter_mut()).zip(row) {
+                    *s += ks * p;
+                    *d += kd * p;
+                }
+            }
+            // Borders of the padded rows.
+            for k in (0..pad).chain(pad + width..pad + width + self.columns.after()) {
+                let s = self.columns.source(k).unwrap_or(0) + pad;
+                self.vs[k] = self.vs[s];
+                self.vd[k] = self.vd[s];
+            }
+            // Horizontal pass.
+            dx.fill(0.0);
+            dy.fill(0.0);
+            let taps = self.deriv.len();
+            for i in 0..taps {
+                let kd = self.deriv[i];
+                let ks = self.smooth[i];
+                let vs = &self.vs[i..i + width];
+                let vd = &self.vd[i..i + width];
+                for (((gx, gy), &s), &d) in dx.iter_mut().zip(dy.iter_mut()).zip(vs).zip(vd) {
+                    *gx += kd * s;
+                    *gy += ks * d;
+                }
+            }
+        }
+    }
+
+    /// The corner response of a gray f32 plane (`width × height`, row-major), OpenCV's
+    /// `cornerHarris(src, block_size, ksize, k)` or `cornerMinEigenVal(src, block_size, ksize)`.
+    ///
+    /// `range` is the sample range the derivatives are divided by (255 for 8-bit data). `ksize` is
+    /// 1, 3, 5 or 7, `block_size` ≥ 1. Bit-identical for any thread count.
+    #[allow(clippy::too_many_arguments)]
+    fn reference_response(
+        src: &[f32],
+        width: usize,
+        height: usize,
+        block_size: usize,
+        ksize: usize,
+        method: CornerMethod,
+        k: f64,
+        range: f32,
+    ) -> Vec<f32> {
+        let mut out = vec![0.0f32; width * height];
+        if width == 0 || height == 0 || src.len() != width * height {
+            return out;
+        }
+        let block = block_size.max(1);
+        let aperture = if ksize <= 1 { 3 } else { ksize };
+        let scale = 1.0 / ((1u64 << (aperture.max(2) - 1).min(62)) as f64 * block as f64);
+        let scale = if ksize <= 1 {
+            1.0 / block as f64
+        } else {
+            scale
+        };
+        let scale = (scale / f64::from(range)) as f32;
+        let before = block / 2;
+        let after = block - 1 - before;
+        let columns = BorderTable::new(width, before, after, BorderMode::Reflect101);
+        let padded = columns.padded_len();
+        out.par_chunks_mut(width * BAND_ROWS)
+            .enumerate()
+            .for_each(|(b, band)| {
+                let y0 = b * BAND_ROWS;
+                let rows = band.len() / width;
+                let mut deriv = RefDerivRows::new(width, ksize);
+                let mut d = vec![0.0f32; 2 * width];
+                // Products, padded: xx, xy, yy interleaved.
+                let mut prod = vec![0.0f32; 3 * padded];
+                // Ring of horizontal sums, `block` rows of 3 × width f64.
+                let mut ring = vec![0.0f64; block * 3 * width];
+                let first = y0 as isize - before as isize;
+                let last = (y0 + rows + after) as isize;
+                for j in first..last {
+                    let sy = map_index(j, height, BorderMode::Reflect101).unwrap_or(0);
+                    deriv.row(src, width, height, sy, &mut d);
+                    let (dx, dy) = d.split_at(width);
+                    let inner = &mut prod[3 * before..3 * (before + width)];
+                    for ((p, &gx), &gy) in inner.chunks_exact_mut(3).zip(dx).zip(dy) {
+                        let gx = gx * scale;
+                        let gy = gy * scale;
+                        p[0] = gx * gx;
+                        p[1] = gx * gy;
+                        p[2] = gy * gy;
+                    }
+                    for kpos in (0..before).chain(before + width..padded) {
+                        let s = columns.source(kpos).unwrap_or(0) + before;
+                        for c in 0..3 {
+                            prod[3 * kpos + c] = prod[3 * s + c];
+                        }
+                    }
+                    let slot = (j - first) as usize % block;
+                    let hs = &mut ring[slot * 3 * width..(slot + 1) * 3 * width];
+                    if block == 2 {
+                        for (x, h) in hs.chunks_exact_mut(3).enumerate() {
+                            let p = &prod[3 * x..3 * x + 6];
+                            h[0] = f64::from(p[0]) + f64::from(p[3]);
+                            h[1] = f64::from(p[1]) + f64::from(p[4]);
+                            h[2] = f64::from(p[2]) + f64::from(p[5]);
+                        }
+                    } else {
+                        for (x, h) in hs.chunks_exact_mut(3).enumerate() {
+                            let mut s = [0.0f64; 3];
+                            for p in prod[3 * x..3 * (x + block)].chunks_exact(3) {
+                                s[0] += f64::from(p[0]);
+                                s[1] += f64::from(p[1]);
+                                s[2] += f64::from(p[2]);
+                            }
+                            h.copy_from_slice(&s);
+                        }
+                    }
+                    let done = (j - first) as usize + 1;
+                    if done >= block {
+                        let y = done - block; // output row within the band
+                        let out_row = &mut band[y * width..(y + 1) * width];
+                        reference_respond_row(&ring, block, width, method, k, out_row);
+                    }
+                }
+            });
+        out
+    }
+
+    /// Sums the `block` rows of horizontal sums and writes the response of one output row.
+    fn reference_respond_row(
+        ring: &[f64],
+        block: usize,
+        width: usize,
+        method: CornerMethod,
+        k: f64,
+        out: &mut [f32],
+    ) {
+        let n = 3 * width;
+        let mut sums = ring[..n].to_vec();
+        for r in 1..block {
+            for (s, &v) in sums.iter_mut().zip(&ring[r * n..(r + 1) * n]) {
+                *s += v;
+            }
+        }
+        match method {
+            CornerMethod::Harris => {
+                for (o, s) in out.iter_mut().zip(sums.chunks_exact(3)) {
+                    let a = f64::from(s[0] as f32);
+                    let b = f64::from(s[1] as f32);
+                    let c = f64::from(s[2] as f32);
+                    *o = (a * c - b * b - k * (a + c) * (a + c)) as f32;
+                }
+            }
+            CornerMethod::ShiTomasi => {
+                for (o, s) in out.iter_mut().zip(sums.chunks_exact(3)) {
+                    let a = (s[0] as f32) * 0.5;
+                    let b = s[1] as f32;
+                    let c = (s[2] as f32) * 0.5;
+                    *o = (a + c) - ((a - c) * (a - c) + b * b).sqrt();
+                }
+            }
+        }
+    }
+
+    /// `goodFeaturesToTrack`-style selection on a response image: pixels (not on the image's outer
+    /// frame) that are 3×3 maxima and strictly above `quality_level · max`, in order of decreasing
+    /// response (equal responses: later in raster order first, as OpenCV), each kept only if no
+    /// kept corner lies closer than `min_distance` px; at most `max_corners` (0: no limit).
+    /// Returns `(x, y, response)` with integer pixel coordinates.
+    fn reference_select(
+        response: &[f32],
+        width: usize,
+        height: usize,
+        quality_level: f64,
+        min_distance: f64,
+        max_corners: usize,
+    ) -> Vec<(usize, usize, f32)> {
+        if width < 3 || height < 3 || response.len() != width * height {
+            return Vec::new();
+        }
+        let max = response
+            .iter()
+            .copied()
+            .filter(|v| !v.is_nan())
+            .fold(f32::NEG_INFINITY, f32::max);
+        let threshold = (f64::from(max) * quality_level) as f32;
+        let keep = |v: f32| if v > threshold { v } else { 0.0 };
+        let mut candidates: Vec<(f32, usize)> = (1..height - 1)
+            .into_par_iter()
+            .map(|y| {
+                let mut found = Vec::new();
+                for x in 1..width - 1 {
+                    let v = keep(response[y * width + x]);
+                    if v == 0.0 || v.is_nan() {
+                        continue;
+                    }
+                    let mut is_max = true;
+                    // Dilation of the thresholded image (outside the image does not count).
+                    'n: for yy in y - 1..=y + 1 {
+                        let row = &response[yy * width..(yy + 1) * width];
+                        for &r in &row[x - 1..=x + 1] {
+                            if keep(r) > v {
+                                is_max = false;
+                                break 'n;
+                            }
+                        }
+                    }
+                    if is_max {
+                        found.push((v, y * width + x));
+                    }
+                }
+                found
+            })
+            .flatten()
+            .collect();
+        candidates.sort_unstable_by(|a, b| b.0.total_cmp(&a.0).then(b.1.cmp(&a.1)));
+        let limit = if max_corners == 0 {
+            usize::MAX
+        } else {
+            max_corners
+        };
+        let mut kept: Vec<(usize, usize, f32)> = Vec::new();
+        if min_distance >= 1.0 {
+            let cell = min_distance.round().max(1.0) as usize;
+            let gw = width.div_ceil(cell);
+            let gh = height.div_ceil(cell);
+            let mut grid: Vec<Vec<(usize, usize)>> = vec![Vec::new(); gw * gh];
+            let d2 = (min_distance * min_distance) as f32;
+            for &(v, i) in &candidates {
+                if kept.len() >= limit {
+                    break;
+                }
+                let (x, y) = (i % width, i / width);
+                let (cx, cy) = (x / cell, y / cell);
+                let mut good = true;
+                'cells: for gy in cy.saturating_sub(1)..=(cy + 1).min(gh - 1) {
+                    for gx in cx.saturating_sub(1)..=(cx + 1).min(gw - 1) {
+                        for &(px, py) in &grid[gy * gw + gx] {
+                            let dx = px as f32 - x as f32;
+                            let dy = py as f32 - y as f32;
+                            if dx * dx + dy * dy < d2 {
+                                good = false;
+                                break 'cells;
+                            }
+                        }
+                    }
+                }
+                if good {
+                    grid[cy * gw + cx].push((x, y));
+                    kept.push((x, y, v));
+                }
+            }
+        } else {
+            kept.extend(
+                candidates
+                    .iter()
+                    .take(limit)
+                    .map(|&(v, i)| (i % width, i / width, v)),
+            );
+        }
+        kept
+    }
+
+    fn bits(v: &[f32]) -> Vec<u32> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    fn lcg(seed: u64) -> impl FnMut() -> u64 {
+        let mut s = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        move || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            s >> 33
+        }
+    }
+
+    /// Random planes of u8-, u16- and f32-like values (with their ranges), and edge shapes.
+    fn planes() -> Vec<(usize, usize, Vec<f32>, f32)> {
+        let mut out = Vec::new();
+        let sizes = [
+            (1, 1),
+            (1, 5),
+            (5, 1),
+            (2, 3),
+            (3, 3),
+            (7, 4),
+            (17, 9),
+            (40, 37),
+            (67, 70),
+        ];
+        for (i, &(w, h)) in sizes.iter().enumerate() {
+            let mut r = lcg(i as u64 + 7);
+            out.push((
+                w,
+                h,
+                (0..w * h).map(|_| (r() % 256) as f32).collect(),
+                255.0,
+            ));
+            out.push((
+                w,
+                h,
+                (0..w * h).map(|_| (r() % 65536) as f32).collect(),
+                65535.0,
+            ));
+            out.push((
+                w,
+                h,
+                (0..w * h)
+                    .map(|_| (r() % 2_000_001) as f32 / 1e6 - 1.0)
+                    .collect(),
+                1.0,
+            ));
+            // Blocks with plateaus (many equal responses).
+            out.push((
+                w,
+                h,
+                (0..w * h)
+                    .map(|p| (((p % w) / 4 * 31 + (p / w) / 4 * 17) % 5 * 60) as f32)
+                    .collect(),
+                255.0,
+            ));
+        }
+        out
+    }
+
+    #[test]
+    fn response_equals_reference_bit_for_bit() {
+        for (w, h, img, range) in planes() {
+            for ksize in [1, 3, 5, 7] {
+                for block in [1, 2, 3, 4, 5, 7] {
+                    for method in [CornerMethod::Harris, CornerMethod::ShiTomasi] {
+                        let fast = corner_response(&img, w, h, block, ksize, method, 0.04, range);
+                        let slow =
+                            reference_response(&img, w, h, block, ksize, method, 0.04, range);
+                        assert_eq!(
+                            bits(&fast),
+                            bits(&slow),
+                            "{w}×{h} range {range} ksize {ksize} block {block} {method:?}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn selection_equals_reference() {
+        for (w, h, img, range) in planes() {
+            for method in [CornerMethod::Harris, CornerMethod::ShiTomasi] {
+                let r = corner_response(&img, w, h, 3, 3, method, 0.04, range);
+                for (q, d, n) in [
+                    (0.01, 10.0, 2000),
+                    (0.3, 0.0, 0),
+                    (0.001, 3.0, 7),
+                    (0.5, 1.0, 1),
+                ] {
+                    assert_eq!(
+                        select_corners(&r, w, h, q, d, n),
+                        reference_select(&r, w, h, q, d, n),
+                        "{w}×{h} {method:?} q {q} d {d} n {n}"
+                    );
+                }
+            }
+        }
+        // Responses with NaN, negative maxima and ties.
+        let (w, h) = (37, 23);
+        let mut r = lcg(99);
+        let mut resp: Vec<f32> = (0..w * h).map(|_| (r() % 7) as f32 - 3.0).collect();
+        for (q, d, n) in [(0.01, 0.0, 0), (0.5, 2.0, 5)] {
+            assert_eq!(
+                select_corners(&resp, w, h, q, d, n),
+                reference_select(&resp, w, h, q, d, n)
+            );
+            let negative: Vec<f32> = resp.iter().map(|v| v - 10.0).collect();
+            assert_eq!(
+                select_corners(&negative, w, h, q, d, n),
+                reference_select(&negative, w, h, q, d, n)
+            );
+        }
+        resp[5 * w + 5] = f32::NAN;
+        resp[7 * w + 9] = f32::INFINITY;
+        assert_eq!(
+            select_corners(&resp, w, h, 0.01, 0.0, 0),
+            reference_select(&resp, w, h, 0.01, 0.0, 0)
+        );
     }
 }

@@ -1,10 +1,10 @@
 //! `detect.fast`: the FAST-9 corner detector (16-pixel circle), compatible with OpenCV's
 //! `FastFeatureDetector` (`TYPE_9_16`).
 //!
-//! [`fast9`] scans each row in two passes: a branch-free, vectorizable pass that keeps only
-//! pixels where two adjacent compass points (of the four at distance 3) are both brighter than
-//! `v + t` or both darker than `v − t` (necessary for any arc of 9), then the full arc test and
-//! the score on those few candidates. Scores go to a small per-band buffer and non-maximum
+//! [`fast9`] scans each row in vectors of [`LANES`] centres with saturated u8 arithmetic: the
+//! four compass pixels reject most vectors (an arc of 9 contains two adjacent ones, both
+//! brighter than `v + t` or both darker than `v − t`); the others get, per lane, the best arc's
+//! smallest saturated difference, which decides the corner test and is its score. Scores go to a small per-band buffer and non-maximum
 //! suppression compares each corner with its 8 neighbours. Bands of [`BAND_ROWS`] rows run in
 //! parallel and recompute the score rows just outside them, so the result does not depend on the
 //! thread count.
@@ -97,16 +97,187 @@ fn has_arc(mask: u32) -> bool {
     m & 0xFFFF != 0 || (m >> 16) & 0xFFFF != 0
 }
 
+/// Lanes per screening vector.
+const LANES: usize = 32;
+
+/// One vector of lanes.
+type Lanes = [u8; LANES];
+
+/// `LANES` bytes of `s` from `at` (the caller keeps `at + LANES ≤ s.len()`).
+#[inline(always)]
+fn load(s: &[u8], at: usize) -> Lanes {
+    let mut v = [0u8; LANES];
+    v.copy_from_slice(&s[at..at + LANES]);
+    v
+}
+
+/// Lane-wise `a − b`, saturating at 0.
+#[inline(always)]
+fn sub_sat(a: &Lanes, b: &Lanes) -> Lanes {
+    let mut r = [0u8; LANES];
+    for i in 0..LANES {
+        r[i] = a[i].saturating_sub(b[i]);
+    }
+    r
+}
+
+/// Lane-wise minimum.
+#[inline(always)]
+fn min(a: &Lanes, b: &Lanes) -> Lanes {
+    let mut r = [0u8; LANES];
+    for i in 0..LANES {
+        r[i] = a[i].min(b[i]);
+    }
+    r
+}
+
+/// Whether any lane is non-zero.
+#[inline(always)]
+fn any(a: &Lanes) -> bool {
+    let mut acc = 0u8;
+    for &v in a {
+        acc |= v;
+    }
+    acc != 0
+}
+
+/// Per lane, the largest minimum of 9 circularly consecutive entries of `m` (clobbered):
+/// minima of 2, then 4 in place, then windows of 9 as `k..k+4`, `k+4..k+8`, `k+5..k+9`.
+#[inline(always)]
+fn best_arc9(m: &mut [Lanes; 16]) -> Lanes {
+    let m0 = m[0];
+    for k in 0..15 {
+        m[k] = min(&m[k], &m[k + 1]);
+    }
+    m[15] = min(&m[15], &m0);
+    let (m0, m1) = (m[0], m[1]);
+    for k in 0..14 {
+        m[k] = min(&m[k], &m[k + 2]);
+    }
+    m[14] = min(&m[14], &m0);
+    m[15] = min(&m[15], &m1);
+    let mut best = [0u8; LANES];
+    for k in 0..16 {
+        let w = min(&min(&m[k], &m[(k + 4) % 16]), &m[(k + 5) % 16]);
+        for i in 0..LANES {
+            best[i] = best[i].max(w[i]);
+        }
+    }
+    best
+}
+
+/// FAST test and score of the [`LANES`] centres from column `x`: writes `scores[x + i]` and
+/// pushes `x + i` for the corners with `x + i ≥ from` (lanes below `from` were done before and
+/// get the same score again).
+///
+/// With `B = max over arcs of 9 of min (p − v)⁺` and `D` the same for `(v − p)⁺`, the centre
+/// is a corner exactly when `max(B, D) > t`, and its score (OpenCV's `cornerScore`, see
+/// [`score`]) is then `max(B, D) − 1`: saturated u8 arithmetic, no comparisons.
+#[inline(always)]
+fn fast_vector(
+    ring: &[&[u8]; 16],
+    centre: &[u8],
+    x: usize,
+    from: usize,
+    t: u8,
+    scores: &mut [u8],
+    corners: &mut Vec<usize>,
+) {
+    let v = load(centre, x);
+    let mut hi = [0u8; LANES];
+    let mut lo = [0u8; LANES];
+    for i in 0..LANES {
+        hi[i] = v[i].saturating_add(t);
+        lo[i] = v[i].saturating_sub(t);
+    }
+    // Pixels 0, 4, 8, 12: an arc of 9 contains two adjacent ones, both > v + t or both
+    // < v − t (non-zero saturated differences).
+    let c = [
+        load(ring[0], x),
+        load(ring[4], x),
+        load(ring[8], x),
+        load(ring[12], x),
+    ];
+    let mut bright = [[0u8; LANES]; 4];
+    let mut dark = [[0u8; LANES]; 4];
+    for k in 0..4 {
+        bright[k] = sub_sat(&c[k], &hi);
+        dark[k] = sub_sat(&lo, &c[k]);
+    }
+    let mut pass = [0u8; LANES];
+    for k in 0..4 {
+        let b = min(&bright[k], &bright[(k + 1) % 4]);
+        let d = min(&dark[k], &dark[(k + 1) % 4]);
+        for i in 0..LANES {
+            pass[i] |= b[i] | d[i];
+        }
+    }
+    if !any(&pass) {
+        return;
+    }
+    let mut m = [[0u8; LANES]; 16];
+    for (k, mk) in m.iter_mut().enumerate() {
+        *mk = sub_sat(&load(ring[k], x), &v);
+    }
+    let b = best_arc9(&mut m);
+    for (k, mk) in m.iter_mut().enumerate() {
+        *mk = sub_sat(&v, &load(ring[k], x));
+    }
+    let d = best_arc9(&mut m);
+    let mut hit = [0u8; LANES];
+    let mut score = [0u8; LANES];
+    for i in 0..LANES {
+        let s = b[i].max(d[i]);
+        let corner = s > t;
+        hit[i] = u8::from(corner);
+        score[i] = if corner { s - 1 } else { 0 };
+    }
+    if any(&hit) {
+        scores[x..x + LANES].copy_from_slice(&score);
+        for (i, &h) in hit.iter().enumerate() {
+            if h != 0 && x + i >= from {
+                corners.push(x + i);
+            }
+        }
+    }
+}
+
+/// FAST-9 corners of one row of at least [`LANES`] centres: `ring[k]` is the row of circle
+/// pixel `k` (the slice starts at its offset from the first centre), `centre` the row of
+/// centres, all `n` long or longer. Writes the scores of the corners into `scores` (which must
+/// be zero at the others) and pushes their indices, ascending, into `corners`.
+///
+/// Vectors of [`LANES`] centres, the last one overlapping its predecessor; see
+/// [`fast_vector`].
+#[multiversion::multiversion(targets("x86_64+avx2", "x86_64+sse4.1"))]
+fn fast_row(
+    ring: &[&[u8]; 16],
+    centre: &[u8],
+    n: usize,
+    t: u8,
+    scores: &mut [u8],
+    corners: &mut Vec<usize>,
+) {
+    let mut x = 0;
+    while x + LANES <= n {
+        fast_vector(ring, centre, x, x, t, scores, corners);
+        x += LANES;
+    }
+    if x < n && n >= LANES {
+        fast_vector(ring, centre, n - LANES, x, t, scores, corners);
+    }
+}
+
 /// Scores of row `y` for columns 3..width−3 into `scores` (width long; non-corners 0) and the
 /// corner columns into `corners`. `scores` must be zero except at the columns `corners` held on
-/// entry (they are cleared first). `flags` is scratch.
+/// entry (they are cleared first). `found` is scratch.
 fn score_row(
     img: &[u8],
     width: usize,
     y: usize,
     t: u8,
     scores: &mut [u8],
-    flags: &mut [u8],
+    found: &mut Vec<usize>,
     corners: &mut Vec<usize>,
 ) {
     for &x in corners.iter() {
@@ -118,79 +289,26 @@ fn score_row(
         let start = ((y as isize + dy) * width as isize + 3 + dx) as usize;
         &img[start..start + n]
     };
-    let centre = at(0, 0);
-    // The eight even circle pixels, clockwise from the top.
-    let even: [&[u8]; 8] = [
-        at(-3, 0),
-        at(-2, 2),
-        at(0, 3),
-        at(2, 2),
-        at(3, 0),
-        at(2, -2),
-        at(0, -3),
-        at(-2, -2),
-    ];
-    // Pass 1, branch-free over the row: an arc of 9 contiguous pixels contains at least 4
-    // cyclically consecutive even pixels, so both masks must have a run of 4.
-    for (i, f) in flags[..n].iter_mut().enumerate() {
-        let v = centre[i];
-        let hi = v.saturating_add(t);
-        let lo = v.saturating_sub(t);
-        let mut b = [0u8; 8];
-        let mut d = [0u8; 8];
-        for k in 0..8 {
-            let p = even[k][i];
-            b[k] = u8::from(p > hi);
-            d[k] = u8::from(p < lo);
-        }
-        let run4 = |e: &[u8; 8]| {
-            let pair = [
-                e[0] & e[1],
-                e[1] & e[2],
-                e[2] & e[3],
-                e[3] & e[4],
-                e[4] & e[5],
-                e[5] & e[6],
-                e[6] & e[7],
-                e[7] & e[0],
-            ];
-            (pair[0] & pair[2])
-                | (pair[1] & pair[3])
-                | (pair[2] & pair[4])
-                | (pair[3] & pair[5])
-                | (pair[4] & pair[6])
-                | (pair[5] & pair[7])
-                | (pair[6] & pair[0])
-                | (pair[7] & pair[1])
-        };
-        *f = run4(&b) | run4(&d);
+    if n >= LANES {
+        let ring: [&[u8]; 16] = CIRCLE.map(|(dx, dy)| at(dy, dx));
+        found.clear();
+        fast_row(&ring, at(0, 0), n, t, &mut scores[3..3 + n], found);
+        corners.extend(found.iter().map(|&i| i + 3));
+        return;
     }
-    // Pass 2: full test on the candidates.
+    // Narrow images: every pixel, scalar.
     let ti = i16::from(t);
     let offsets: [isize; 16] = CIRCLE.map(|(dx, dy)| dy * width as isize + dx);
-    for (chunk_index, chunk) in flags[..n].chunks(8).enumerate() {
-        let any = match <[u8; 8]>::try_from(chunk) {
-            Ok(bytes) => u64::from_ne_bytes(bytes) != 0,
-            Err(_) => chunk.iter().any(|&f| f != 0),
-        };
-        if !any {
-            continue;
+    for (x, s) in scores.iter_mut().enumerate().take(3 + n).skip(3) {
+        let p = y * width + x;
+        let v = i16::from(img[p]);
+        let mut d = [0i16; 16];
+        for (dk, &o) in d.iter_mut().zip(&offsets) {
+            *dk = v - i16::from(img[(p as isize + o) as usize]);
         }
-        for (j, &f) in chunk.iter().enumerate() {
-            if f == 0 {
-                continue;
-            }
-            let x = chunk_index * 8 + j + 3;
-            let p = y * width + x;
-            let v = i16::from(img[p]);
-            let mut d = [0i16; 16];
-            for (dk, &o) in d.iter_mut().zip(&offsets) {
-                *dk = v - i16::from(img[(p as isize + o) as usize]);
-            }
-            if is_corner(&d, ti) {
-                scores[x] = score(&d, ti).clamp(0, 255) as u8;
-                corners.push(x);
-            }
+        if is_corner(&d, ti) {
+            *s = score(&d, ti).clamp(0, 255) as u8;
+            corners.push(x);
         }
     }
 }
@@ -218,13 +336,13 @@ pub fn fast9(
         .map(|b| {
             let y0 = first + b * BAND_ROWS;
             let y1 = (y0 + BAND_ROWS).min(last);
-            let mut flags = vec![0u8; width];
+            let mut found = Vec::new();
             let mut out = Vec::new();
             if !nonmax {
                 let mut scores = vec![0u8; width];
                 let mut corners = Vec::new();
                 for y in y0..y1 {
-                    score_row(img, width, y, t, &mut scores, &mut flags, &mut corners);
+                    score_row(img, width, y, t, &mut scores, &mut found, &mut corners);
                     out.extend(corners.iter().map(|&x| (x, y, scores[x])));
                 }
                 return out;
@@ -241,14 +359,14 @@ pub fn fast9(
                         y,
                         t,
                         &mut ring[slot],
-                        &mut flags,
+                        &mut found,
                         &mut cols[slot],
                     );
                 }
             }
             for y in y0..y1 {
                 if y + 1 < last {
-                    score_row(img, width, y + 1, t, &mut ring[2], &mut flags, &mut cols[2]);
+                    score_row(img, width, y + 1, t, &mut ring[2], &mut found, &mut cols[2]);
                 } else {
                     for &x in &cols[2] {
                         ring[2][x] = 0;
@@ -309,8 +427,10 @@ all < v − t. Its score is the largest threshold at which it is still a corner 
 `nonmax_suppression`, a corner is kept only if its score is strictly greater than the scores of
 its 8 neighbours (non-corners score 0).
 
-Speed: each row is first screened branch-free with the four compass pixels (an arc of 9 always
-contains two adjacent compass points), then candidates get the full test.
+Speed: rows are processed 32 centres at a time in saturated u8 arithmetic (vectorized, AVX2
+when available): the four compass pixels reject most vectors (an arc of 9 always contains two
+adjacent compass points); for the rest, the largest over 9-arcs of the smallest (p − v)⁺ or
+(v − p)⁺ gives both the test (> t) and the score (minus 1), with no per-pixel branches.
 
 Keypoints come in raster order with size 7, angle −1, response = score, octave 0, matching
 `cv::FastFeatureDetector::create(t, nonmax, TYPE_9_16)`. Gray u8 only.
@@ -476,6 +596,64 @@ mod tests {
                     assert_eq!(
                         fast9(&img, w, h, t, nonmax),
                         reference(&img, w, h, t, nonmax)
+                    );
+                }
+            }
+        }
+    }
+
+    /// The vector screening (whole vectors of 32 centres and the scalar tail) against the
+    /// direct reference: widths around the vector length, saturating centres (0 and 255),
+    /// thresholds 0 and 255, and images of a few levels where many pixels tie with v ± t.
+    #[test]
+    fn vector_path_matches_reference_on_edge_cases() {
+        let mut cases: Vec<(usize, usize, Vec<u8>)> = Vec::new();
+        for (i, w) in [7usize, 8, 37, 38, 39, 45, 70, 71, 72, 102, 133]
+            .into_iter()
+            .enumerate()
+        {
+            let h = 9 + i % 4;
+            let seed = 100 + i as u64;
+            cases.push((
+                w,
+                h,
+                random_u8(w, h, Channels::Gray, seed)
+                    .as_u8()
+                    .unwrap()
+                    .to_vec(),
+            ));
+            cases.push((w, h, blocks(w, h, seed)));
+            // Few levels: 0, 20, 40, ..., 240 and 255, with exact ties at t = 20.
+            let levels = random_u8(w, h, Channels::Gray, seed + 50);
+            cases.push((
+                w,
+                h,
+                levels
+                    .as_u8()
+                    .unwrap()
+                    .iter()
+                    .map(|&v| if v > 247 { 255 } else { (v / 20) * 20 })
+                    .collect(),
+            ));
+            // Black and white only.
+            cases.push((
+                w,
+                h,
+                levels
+                    .as_u8()
+                    .unwrap()
+                    .iter()
+                    .map(|&v| if v & 1 == 0 { 0 } else { 255 })
+                    .collect(),
+            ));
+        }
+        for (w, h, img) in &cases {
+            for t in [0u8, 1, 20, 40, 128, 254, 255] {
+                for nonmax in [false, true] {
+                    assert_eq!(
+                        fast9(img, *w, *h, t, nonmax),
+                        reference(img, *w, *h, t, nonmax),
+                        "{w}×{h} t {t} nonmax {nonmax}"
                     );
                 }
             }
