@@ -8,19 +8,17 @@
 //! previous one sampled at every second pixel, so every octave starts at blur `σ` in its own
 //! pixels. DoG image `i` is Gaussian `i + 1` minus Gaussian `i`.
 //!
-//! Blurs run on the separable engine of `filter.gaussian` (f32 accumulation, reflect-101 border
-//! like OpenCV's `GaussianBlur` default) with kernels of `round(8σ + 1) | 1` taps, OpenCV's size
-//! for float images; the DoG subtraction runs over fixed row bands in parallel. All of it is
-//! bit-identical for any thread count.
+//! Blurs use `filter.gaussian`'s kernels with `round(8σ + 1) | 1` taps (OpenCV's size for float
+//! images) and reflect-101 borders (OpenCV's `GaussianBlur` default), in a dedicated separable
+//! pass for symmetric kernels on f32 planes ([`blur`]); blurs and the DoG subtraction run over
+//! fixed row bands in parallel. All of it is bit-identical for any thread count.
 //!
 //! Reference: D. G. Lowe, "Distinctive image features from scale-invariant keypoints", IJCV
 //! 60(2), 2004; OpenCV `SIFT_Impl::buildGaussianPyramid`, `buildDoGPyramid`.
 
-use ocellus_engine::value::{Channels, Image, PixelData};
 use rayon::prelude::*;
 
-use crate::filter::border::BorderMode;
-use crate::filter::gaussian::{gaussian_kernel, separable_filter};
+use crate::filter::gaussian::gaussian_kernel;
 
 /// Rows per parallel band of the plane-wise loops.
 const BAND_ROWS: usize = 32;
@@ -67,24 +65,102 @@ pub fn kernel_size(sigma: f64) -> usize {
 }
 
 /// Gaussian blur of a plane by `sigma` (px), reflect-101 border. `sigma ≤ 0` copies.
+///
+/// Kernel: `filter.gaussian`'s [`gaussian_kernel`] of [`kernel_size`] taps. The passes exploit
+/// its symmetry (`k_j·(a + b)` per pair of taps, half the multiplies) and run column pass first,
+/// straight from the source rows, then the row pass on a padded copy of that one row; both are
+/// AVX2-compiled loops over whole rows. Bands of [`BAND_ROWS`] output rows run in parallel.
 pub fn blur(plane: &Plane, sigma: f64) -> Plane {
-    if !(sigma > 0.0) || plane.data.is_empty() {
+    if sigma.is_nan() || sigma <= 0.0 || plane.data.is_empty() {
         return plane.clone();
     }
-    let kernel = gaussian_kernel(kernel_size(sigma), sigma);
-    let image = match Image::new(
-        plane.width,
-        plane.height,
-        Channels::Gray,
-        PixelData::F32(plane.data.clone()),
-    ) {
-        Ok(image) => image,
-        Err(_) => return plane.clone(),
-    };
-    let out = separable_filter(&image, &kernel, &kernel, BorderMode::Reflect101, 0.0);
-    match out.into_data() {
-        PixelData::F32(data) => Plane::new(plane.width, plane.height, data),
-        _ => plane.clone(),
+    let full = gaussian_kernel(kernel_size(sigma), sigma);
+    let half: Vec<f32> = full[full.len() / 2..].iter().map(|&v| v as f32).collect();
+    let (w, h) = (plane.width, plane.height);
+    let mut data = vec![0f32; w * h];
+    data.par_chunks_mut(w * BAND_ROWS)
+        .enumerate()
+        .for_each(|(band, out)| {
+            let y0 = band * BAND_ROWS;
+            blur_rows(&plane.data, w, h, &half, y0, out);
+        });
+    Plane::new(w, h, data)
+}
+
+/// Reflect-101 index of `i` (may be negative or ≥ n) for a length `n` ≥ 1.
+fn reflect101(i: isize, n: usize) -> usize {
+    if n <= 1 {
+        return 0;
+    }
+    let n = n as isize;
+    let period = 2 * (n - 1);
+    let mut i = i.rem_euclid(period);
+    if i >= n {
+        i = period - i;
+    }
+    i as usize
+}
+
+/// `acc[x] = k[0]·c[x] + Σ_{j ≥ 1} k[j]·(a_j[x] + b_j[x])` for the row pairs `(a_j, b_j)`.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn symmetric_rows(k: &[f32], centre: &[f32], pairs: &[(&[f32], &[f32])], acc: &mut [f32]) {
+    let n = acc.len().min(centre.len());
+    let k0 = k[0];
+    for (a, &c) in acc[..n].iter_mut().zip(&centre[..n]) {
+        *a = k0 * c;
+    }
+    for (&(p, q), &w) in pairs.iter().zip(&k[1..]) {
+        let n = n.min(p.len()).min(q.len());
+        for ((a, &u), &v) in acc[..n].iter_mut().zip(&p[..n]).zip(&q[..n]) {
+            *a += w * (u + v);
+        }
+    }
+}
+
+/// `out[x] = k[0]·p[x + R] + Σ_{j ≥ 1} k[j]·(p[x + R − j] + p[x + R + j])`, `R = k.len() − 1`.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
+fn symmetric_cols(k: &[f32], padded: &[f32], out: &mut [f32]) {
+    let r = k.len() - 1;
+    let n = out.len();
+    if padded.len() < n + 2 * r {
+        return;
+    }
+    let k0 = k[0];
+    for (o, &c) in out.iter_mut().zip(&padded[r..r + n]) {
+        *o = k0 * c;
+    }
+    for (j, &w) in k.iter().enumerate().skip(1) {
+        let left = &padded[r - j..r - j + n];
+        let right = &padded[r + j..r + j + n];
+        for ((o, &u), &v) in out.iter_mut().zip(left).zip(right) {
+            *o += w * (u + v);
+        }
+    }
+}
+
+/// Output rows `y0..` of the blur of a `w × h` plane with half kernel `k` (centre first) into
+/// `out` (whole rows).
+fn blur_rows(src: &[f32], w: usize, h: usize, k: &[f32], y0: usize, out: &mut [f32]) {
+    let r = k.len() - 1;
+    let mut col = vec![0f32; w];
+    let mut padded = vec![0f32; w + 2 * r];
+    let row = |y: usize| &src[y * w..(y + 1) * w];
+    let mut pairs: Vec<(&[f32], &[f32])> = Vec::with_capacity(r);
+    for (y, dst) in (y0..).zip(out.chunks_exact_mut(w)) {
+        pairs.clear();
+        pairs.extend((1..=r).map(|j| {
+            (
+                row(reflect101(y as isize - j as isize, h)),
+                row(reflect101((y + j) as isize, h)),
+            )
+        }));
+        symmetric_rows(k, row(y), &pairs, &mut col);
+        padded[r..r + w].copy_from_slice(&col);
+        for j in 1..=r {
+            padded[r - j] = col[reflect101(-(j as isize), w)];
+            padded[r + w - 1 + j] = col[reflect101((w - 1 + j) as isize, w)];
+        }
+        symmetric_cols(k, &padded, dst);
     }
 }
 
@@ -283,6 +359,36 @@ mod tests {
         for x in 20..44 {
             assert!((b.at(x, 4) - x as f32).abs() < 1e-3);
         }
+    }
+
+    #[test]
+    fn blur_matches_direct_2d_reflect101() {
+        for &(w, h, sigma) in &[(37usize, 23usize, 1.2f64), (5, 4, 1.6), (1, 1, 0.8), (64, 3, 3.1)] {
+            let src: Vec<f32> = (0..w * h).map(|i| ((i * 7919) % 251) as f32).collect();
+            let p = Plane::new(w, h, src.clone());
+            let out = blur(&p, sigma);
+            let k = gaussian_kernel(kernel_size(sigma), sigma);
+            let r = (k.len() / 2) as isize;
+            for y in 0..h {
+                for x in 0..w {
+                    let mut acc = 0f64;
+                    for dy in -r..=r {
+                        for dx in -r..=r {
+                            let yy = reflect101(y as isize + dy, h);
+                            let xx = reflect101(x as isize + dx, w);
+                            acc += k[(dy + r) as usize]
+                                * k[(dx + r) as usize]
+                                * f64::from(src[yy * w + xx]);
+                        }
+                    }
+                    let d = (acc - f64::from(out.at(x, y))).abs();
+                    assert!(d < 1e-3, "{w}×{h} σ {sigma} at ({x}, {y}): {d}");
+                }
+            }
+        }
+        assert_eq!(reflect101(-1, 5), 1);
+        assert_eq!(reflect101(5, 5), 3);
+        assert_eq!(reflect101(-7, 3), 1);
     }
 
     #[test]
