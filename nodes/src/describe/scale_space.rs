@@ -261,9 +261,21 @@ pub struct ScaleSpace {
     pub dogs: Vec<Vec<Plane>>,
 }
 
-/// Builds `octaves` octaves of `layers + 3` Gaussians from `base`, which must already have blur
-/// `sigma`. Stops early when an octave would be empty.
+/// Builds `octaves` octaves of `layers + 3` Gaussians and their DoGs from `base`, which must
+/// already have blur `sigma`. Stops early when an octave would be empty.
 pub fn build(base: Plane, octaves: usize, layers: usize, sigma: f64) -> ScaleSpace {
+    let mut space = build_gaussians(base, octaves, layers, sigma);
+    space.dogs = space
+        .gaussians
+        .iter()
+        .map(|oct| oct.windows(2).map(|p| difference(&p[1], &p[0])).collect())
+        .collect();
+    space
+}
+
+/// As [`build`] without the DoG planes (`dogs` is empty), for callers that compute DoG samples
+/// on the fly.
+pub fn build_gaussians(base: Plane, octaves: usize, layers: usize, sigma: f64) -> ScaleSpace {
     let sig = incremental_sigmas(sigma, layers);
     let mut gaussians: Vec<Vec<Plane>> = Vec::with_capacity(octaves);
     let mut first = base;
@@ -284,14 +296,10 @@ pub fn build(base: Plane, octaves: usize, layers: usize, sigma: f64) -> ScaleSpa
         }
         gaussians.push(octave);
     }
-    let dogs = gaussians
-        .iter()
-        .map(|oct| oct.windows(2).map(|p| difference(&p[1], &p[0])).collect())
-        .collect();
     ScaleSpace {
         layers,
         gaussians,
-        dogs,
+        dogs: Vec::new(),
     }
 }
 
@@ -363,7 +371,12 @@ mod tests {
 
     #[test]
     fn blur_matches_direct_2d_reflect101() {
-        for &(w, h, sigma) in &[(37usize, 23usize, 1.2f64), (5, 4, 1.6), (1, 1, 0.8), (64, 3, 3.1)] {
+        for &(w, h, sigma) in &[
+            (37usize, 23usize, 1.2f64),
+            (5, 4, 1.6),
+            (1, 1, 0.8),
+            (64, 3, 3.1),
+        ] {
             let src: Vec<f32> = (0..w * h).map(|i| ((i * 7919) % 251) as f32).collect();
             let p = Plane::new(w, h, src.clone());
             let out = blur(&p, sigma);

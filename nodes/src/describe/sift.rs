@@ -359,7 +359,7 @@ fn build_space(gray: Plane, s: &Settings) -> ScaleSpace {
         let n = ((min_side as f64).log2() - 2.0).round() as i64 + i64::from(s.upsample);
         n.max(0) as usize
     };
-    scale_space::build(base, octaves, s.layers, s.sigma)
+    scale_space::build_gaussians(base, octaves, s.layers, s.sigma)
 }
 
 /// Input-image keypoint of an oriented candidate.
@@ -413,12 +413,15 @@ fn dedupe(list: &mut Vec<Oriented>) {
 }
 
 /// All refined, accepted extrema of the scale space, in scan order (octave, layer, row, column).
+///
+/// The DoG is not stored: each band task subtracts the Gaussian rows it needs (bit-identical to
+/// the stored difference), which saves writing and page-faulting `s + 2` planes per octave.
 fn find_extrema(space: &ScaleSpace, s: &Settings) -> Vec<Candidate> {
     let layers = space.layers;
     let threshold = (0.5 * s.contrast / layers as f32 * 255.0).floor();
     let mut tasks = Vec::new();
-    for (o, dogs) in space.dogs.iter().enumerate() {
-        let (w, h) = (dogs[0].width, dogs[0].height);
+    for (o, gauss) in space.gaussians.iter().enumerate() {
+        let (w, h) = (gauss[0].width, gauss[0].height);
         if w <= 2 * IMG_BORDER || h <= 2 * IMG_BORDER {
             continue;
         }
@@ -434,12 +437,30 @@ fn find_extrema(space: &ScaleSpace, s: &Settings) -> Vec<Candidate> {
     let found: Vec<Vec<Candidate>> = tasks
         .par_iter()
         .map(|&(o, layer, y0, y1)| {
+            let gauss = &space.gaussians[o];
+            let w = gauss[0].width;
+            // DoG layers layer − 1 ..= layer + 1, rows y0 − 1 ..= y1.
+            let rows = y1 - y0 + 2;
+            let band: Vec<Plane> = (layer - 1..=layer + 1)
+                .map(|l| {
+                    let mut data = vec![0f32; rows * w];
+                    for (k, out) in data.chunks_exact_mut(w).enumerate() {
+                        let y = y0 - 1 + k;
+                        for ((d, &a), &b) in
+                            out.iter_mut().zip(gauss[l + 1].row(y)).zip(gauss[l].row(y))
+                        {
+                            *d = a - b;
+                        }
+                    }
+                    Plane::new(w, rows, data)
+                })
+                .collect();
             let mut out = Vec::new();
             let mut xs = Vec::new();
             for r in y0..y1 {
-                scan_row(&space.dogs[o], layer, r, threshold, &mut xs);
+                scan_row(&band, 1, r + 1 - y0, threshold, &mut xs);
                 for &c in &xs {
-                    if let Some(cand) = refine(space, s, o, layer, r, c) {
+                    if let Some(cand) = refine(gauss, s, o, layers, layer, r, c) {
                         out.push(cand);
                     }
                 }
@@ -548,10 +569,16 @@ fn screen(
     }
 }
 
+/// DoG sample `D_l(x, y) = G_{l+1}(x, y) − G_l(x, y)` of an octave's Gaussians.
+#[inline]
+fn dog(gauss: &[Plane], l: usize, x: usize, y: usize) -> f32 {
+    gauss[l + 1].at(x, y) - gauss[l].at(x, y)
+}
+
 /// Derivatives of D at (layer, r, c) of an octave, in 0..1 units: gradient (x, y, s) and Hessian.
-fn derivatives(dogs: &[Plane], layer: usize, r: usize, c: usize) -> ([f32; 3], [[f32; 3]; 3]) {
+fn derivatives(gauss: &[Plane], layer: usize, r: usize, c: usize) -> ([f32; 3], [[f32; 3]; 3]) {
     let scale = 1.0 / 255.0;
-    let d = |l: usize, y: usize, x: usize| dogs[l].at(x, y);
+    let d = |l: usize, y: usize, x: usize| dog(gauss, l, x, y);
     let v2 = d(layer, r, c) * 2.0;
     let dx = (d(layer, r, c + 1) - d(layer, r, c - 1)) * scale * 0.5;
     let dy = (d(layer, r + 1, c) - d(layer, r - 1, c)) * scale * 0.5;
@@ -616,20 +643,19 @@ pub(crate) fn solve3(h: [[f32; 3]; 3], g: [f32; 3]) -> Option<[f32; 3]> {
 /// Refines the extremum at (layer, r, c) of octave `o`; `None` when it moves out, does not
 /// converge, or fails the contrast or edge test (OpenCV's `adjustLocalExtrema`).
 fn refine(
-    space: &ScaleSpace,
+    gauss: &[Plane],
     s: &Settings,
     o: usize,
+    layers: usize,
     mut layer: usize,
     mut r: usize,
     mut c: usize,
 ) -> Option<Candidate> {
-    let dogs = &space.dogs[o];
-    let layers = space.layers;
-    let (w, h) = (dogs[0].width, dogs[0].height);
+    let (w, h) = (gauss[0].width, gauss[0].height);
     let mut off = [0f32; 3];
     let mut converged = false;
     for _ in 0..MAX_INTERP_STEPS {
-        let (g, hess) = derivatives(dogs, layer, r, c);
+        let (g, hess) = derivatives(gauss, layer, r, c);
         let x = solve3(hess, g)?;
         off = [-x[0], -x[1], -x[2]];
         if off.iter().all(|v| v.abs() < 0.5) {
@@ -658,9 +684,9 @@ fn refine(
     if !converged {
         return None;
     }
-    let (g, hess) = derivatives(dogs, layer, r, c);
+    let (g, hess) = derivatives(gauss, layer, r, c);
     let t = g[0] * off[0] + g[1] * off[1] + g[2] * off[2];
-    let contr = dogs[layer].at(c, r) / 255.0 + t * 0.5;
+    let contr = dog(gauss, layer, c, r) / 255.0 + t * 0.5;
     if contr.abs() * (layers as f32) < s.contrast {
         return None;
     }
@@ -1174,6 +1200,18 @@ mod tests {
         assert!(correct > 0.85, "correct ratio {correct}");
         assert!(rep > 0.4, "repeatability {rep}");
     }
+    /// Gaussians whose successive differences are `dogs` (G₀ = 0, G_{l+1} = G_l + D_l).
+    fn integrate(dogs: &[Plane]) -> Vec<Plane> {
+        let (w, h) = (dogs[0].width, dogs[0].height);
+        let mut out = vec![Plane::new(w, h, vec![0.0; w * h])];
+        for d in dogs {
+            let Some(last) = out.last() else { break };
+            let next = last.data.iter().zip(&d.data).map(|(a, b)| a + b).collect();
+            out.push(Plane::new(w, h, next));
+        }
+        out
+    }
+
     #[test]
     fn refinement_finds_the_vertex_of_a_quadratic() {
         // D = 12 − a(x − x0)² − b(y − y0)² − c(s − s0)² (0..255 units): the quadratic fit is
@@ -1194,17 +1232,13 @@ mod tests {
                 Plane::new(w, h, data)
             })
             .collect();
-        let space = ScaleSpace {
-            layers: 3,
-            gaussians: Vec::new(),
-            dogs: vec![dogs],
-        };
+        let gauss = integrate(&dogs);
         let s = match settings(&SiftParams::default()) {
             Ok(s) => s,
             Err(e) => panic!("{e}"),
         };
         for (r, c, l) in [(9, 11, 2), (8, 12, 2), (10, 10, 3)] {
-            let Some(k) = refine(&space, &s, 0, l, r, c) else {
+            let Some(k) = refine(&gauss, &s, 0, 3, l, r, c) else {
                 panic!("rejected from ({r}, {c}, {l})");
             };
             assert_eq!((k.c, k.r, k.layer), (11, 9, 2));
@@ -1216,7 +1250,7 @@ mod tests {
         }
         // Too weak: 12/255·3 = 0.14 passes 0.04 but not 0.2.
         let strict = Settings { contrast: 0.2, ..s };
-        assert!(refine(&space, &strict, 0, 2, 9, 11).is_none());
+        assert!(refine(&gauss, &strict, 0, 3, 2, 9, 11).is_none());
         // A ridge (b ≈ 0 in y) fails the edge test.
         let ridge: Vec<Plane> = (0..5)
             .map(|l| {
@@ -1231,12 +1265,7 @@ mod tests {
                 Plane::new(w, h, data)
             })
             .collect();
-        let space = ScaleSpace {
-            layers: 3,
-            gaussians: Vec::new(),
-            dogs: vec![ridge],
-        };
-        assert!(refine(&space, &s, 0, 2, 9, 11).is_none());
+        assert!(refine(&integrate(&ridge), &s, 0, 3, 2, 9, 11).is_none());
     }
 
     #[test]
