@@ -195,7 +195,7 @@ pub fn upsample2(plane: &Plane) -> Plane {
                 let oy = y0 + k;
                 let y = oy / 2;
                 // Output row 2y reads rows y and y − 1; 2y + 1 reads y and y + 1.
-                let other = if oy % 2 == 0 {
+                let other = if oy.is_multiple_of(2) {
                     y.saturating_sub(1)
                 } else {
                     (y + 1).min(h - 1)

@@ -622,10 +622,11 @@ pub(crate) fn solve3(h: [[f32; 3]; 3], g: [f32; 3]) -> Option<[f32; 3]> {
             return None;
         }
         a.swap(col, p);
-        for row in col + 1..3 {
-            let f = a[row][col] / a[col][col];
-            for k in col..4 {
-                a[row][k] -= f * a[col][k];
+        let pivot = a[col];
+        for r in a.iter_mut().skip(col + 1) {
+            let f = r[col] / pivot[col];
+            for (v, &q) in r.iter_mut().zip(&pivot).skip(col) {
+                *v -= f * q;
             }
         }
     }
