@@ -5,6 +5,7 @@
 
 pub mod analyze;
 pub mod capture;
+pub mod describe;
 pub mod detect;
 pub mod filter;
 pub mod io;
@@ -64,6 +65,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::integral::Integral>()?;
     registry.register::<filter::warp::WarpAffine>()?;
     registry.register::<filter::warp::WarpPerspective>()?;
+    registry.register::<describe::sift::Sift>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<detect::mser::Mser>()?;
     registry.register::<detect::qr::QrFinder>()?;
