@@ -5,6 +5,7 @@
 
 pub mod analyze;
 pub mod capture;
+pub mod describe;
 pub mod detect;
 pub mod filter;
 pub mod io;
@@ -74,6 +75,9 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<detect::hough::HoughLines>()?;
     registry.register::<detect::hough::HoughSegments>()?;
     registry.register::<detect::template::TemplateMatch>()?;
+    registry.register::<describe::orb::Orb>()?;
+    registry.register::<describe::brief::Brief>()?;
+    registry.register::<describe::hog::Hog>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<analyze::evaluate::Evaluate>()?;
