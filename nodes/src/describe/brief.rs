@@ -240,7 +240,7 @@ fn validate(p: &BriefParams) -> Result<(), String> {
             p.smoothing_sigma
         ));
     }
-    if p.smoothing_ksize != 0 && (p.smoothing_ksize % 2 == 0 || p.smoothing_ksize > 255) {
+    if p.smoothing_ksize != 0 && (p.smoothing_ksize.is_multiple_of(2) || p.smoothing_ksize > 255) {
         return Err(format!(
             "`smoothing_ksize` must be 0 or odd up to 255, got {}",
             p.smoothing_ksize
@@ -260,9 +260,17 @@ pub(crate) fn smooth_gray(
     if sigma <= 0.0 || gray.is_empty() {
         return Ok(gray.to_vec());
     }
-    let image = Image::from_u8(width, height, Channels::Gray, gray.to_vec())
-        .map_err(|e| e.to_string())?;
-    let blurred = gaussian_blur(&image, sigma, sigma, ksize, ksize, BorderMode::Reflect101, 0.0);
+    let image =
+        Image::from_u8(width, height, Channels::Gray, gray.to_vec()).map_err(|e| e.to_string())?;
+    let blurred = gaussian_blur(
+        &image,
+        sigma,
+        sigma,
+        ksize,
+        ksize,
+        BorderMode::Reflect101,
+        0.0,
+    );
     blurred
         .as_u8()
         .map(<[u8]>::to_vec)
@@ -303,7 +311,12 @@ pub fn brief_describe(
         .iter()
         .filter_map(|k| {
             let (x, y) = (k.x.round_ties_even(), k.y.round_ties_even());
-            if x.is_finite() && y.is_finite() && x >= r && y >= r && x + r < w as f32 && y + r < h as f32
+            if x.is_finite()
+                && y.is_finite()
+                && x >= r
+                && y >= r
+                && x + r < w as f32
+                && y + r < h as f32
             {
                 Some((*k, x as usize, y as usize))
             } else {
@@ -377,7 +390,11 @@ Example:
     fn inputs() -> Vec<PortSpec> {
         vec![
             PortSpec::new("image", PortType::Image, "Image to describe (any format)."),
-            PortSpec::new("keypoints", PortType::Keypoints, "Where to compute descriptors."),
+            PortSpec::new(
+                "keypoints",
+                PortType::Keypoints,
+                "Where to compute descriptors.",
+            ),
         ]
     }
 
@@ -532,9 +549,11 @@ mod tests {
         let var = u.iter().map(|t| f64::from(t[0] * t[0])).sum::<f64>() / 512.0;
         // Uniform on −23..=23: σ = sqrt((47² − 1)/12) ≈ 13.6.
         assert!((12.0..15.0).contains(&var.sqrt()), "{}", var.sqrt());
-        assert!(brief_pattern(BriefPattern::PolarCentered, 256, 48)
-            .iter()
-            .all(|t| t[0] == 0 && t[1] == 0));
+        assert!(
+            brief_pattern(BriefPattern::PolarCentered, 256, 48)
+                .iter()
+                .all(|t| t[0] == 0 && t[1] == 0)
+        );
     }
 
     #[test]
@@ -543,8 +562,20 @@ mod tests {
         let (w, h) = (64, 64);
         let g = crate::filter::test_support::random_u8(w, h, Channels::Gray, 5);
         let v = g.as_u8().unwrap().to_vec();
-        let g16 = Image::from_u16(w, h, Channels::Gray, v.iter().map(|&s| u16::from(s) * 257).collect()).unwrap();
-        let gf = Image::from_f32(w, h, Channels::Gray, v.iter().map(|&s| f32::from(s) / 255.0).collect()).unwrap();
+        let g16 = Image::from_u16(
+            w,
+            h,
+            Channels::Gray,
+            v.iter().map(|&s| u16::from(s) * 257).collect(),
+        )
+        .unwrap();
+        let gf = Image::from_f32(
+            w,
+            h,
+            Channels::Gray,
+            v.iter().map(|&s| f32::from(s) / 255.0).collect(),
+        )
+        .unwrap();
         let kps: Vec<Keypoint> = (0..10).map(|i| kp(24.0 + i as f32, 30.0)).collect();
         let p = BriefParams::default();
         let a = brief_describe(&g, &kps, &p).unwrap();
@@ -561,7 +592,8 @@ mod tests {
         let p = BriefParams::default();
         for (w, h) in [(0, 0), (1, 1), (8, 8), (47, 47)] {
             let img = Image::from_u8(w, h, Channels::Gray, vec![7; w * h]).unwrap();
-            let (k, d) = brief_describe(&img, &[kp(0.0, 0.0), kp(4.0, 4.0), kp(f32::NAN, 3.0)], &p).unwrap();
+            let (k, d) =
+                brief_describe(&img, &[kp(0.0, 0.0), kp(4.0, 4.0), kp(f32::NAN, 3.0)], &p).unwrap();
             assert!(k.is_empty() && d.is_empty());
         }
         // 47×47 with patch 47 (r = 23): only the centre fits.
@@ -570,7 +602,8 @@ mod tests {
             patch_size: 47,
             ..BriefParams::default()
         };
-        let (k, d) = brief_describe(&img, &[kp(23.0, 23.0), kp(24.0, 23.0), kp(22.6, 23.4)], &q).unwrap();
+        let (k, d) =
+            brief_describe(&img, &[kp(23.0, 23.0), kp(24.0, 23.0), kp(22.6, 23.4)], &q).unwrap();
         assert_eq!(k.len(), 2);
         // Constant image: every test is "not darker".
         let Descriptors::Binary { data, .. } = d else {
@@ -588,13 +621,28 @@ mod tests {
             .collect();
         let p = BriefParams::default();
         let many = brief_describe(&g, &kps, &p).unwrap();
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
         assert_eq!(pool.install(|| brief_describe(&g, &kps, &p)).unwrap(), many);
         for bad in [
-            BriefParams { bytes: 20, ..p.clone() },
-            BriefParams { patch_size: 2, ..p.clone() },
-            BriefParams { smoothing_sigma: f64::NAN, ..p.clone() },
-            BriefParams { smoothing_ksize: 4, ..p.clone() },
+            BriefParams {
+                bytes: 20,
+                ..p.clone()
+            },
+            BriefParams {
+                patch_size: 2,
+                ..p.clone()
+            },
+            BriefParams {
+                smoothing_sigma: f64::NAN,
+                ..p.clone()
+            },
+            BriefParams {
+                smoothing_ksize: 4,
+                ..p.clone()
+            },
         ] {
             assert!(Brief::new(bad).is_err());
         }

@@ -162,9 +162,11 @@ fn harris_at(img: &[u8], w: usize, x: usize, y: usize) -> f64 {
         for dx in 0..7 {
             let p = row + dx;
             let at = |q: usize| i64::from(img[q]);
-            let ix = (at(p + 1) - at(p - 1)) * 2 + (at(p - w + 1) - at(p - w - 1))
+            let ix = (at(p + 1) - at(p - 1)) * 2
+                + (at(p - w + 1) - at(p - w - 1))
                 + (at(p + w + 1) - at(p + w - 1));
-            let iy = (at(p + w) - at(p - w)) * 2 + (at(p + w - 1) - at(p - w - 1))
+            let iy = (at(p + w) - at(p - w)) * 2
+                + (at(p + w - 1) - at(p - w - 1))
                 + (at(p + w + 1) - at(p - w + 1));
             a += ix * ix;
             b += iy * iy;
@@ -274,7 +276,10 @@ fn retain_best<T>(items: &mut Vec<T>, n: usize, response: impl Fn(&T) -> f64) {
         return;
     }
     let boundary = response(&items[n - 1]);
-    let end = n + items[n..].iter().take_while(|t| response(t) >= boundary).count();
+    let end = n + items[n..]
+        .iter()
+        .take_while(|t| response(t) >= boundary)
+        .count();
     items.truncate(end);
 }
 
@@ -293,6 +298,9 @@ fn level_budgets(n: usize, levels: usize, scale_factor: f64) -> Vec<usize> {
     out.push(n.saturating_sub(sum));
     out
 }
+
+/// Keypoints and descriptor bytes of one level.
+type LevelOutput = (Vec<Keypoint>, Vec<u8>);
 
 /// One level of the pyramid.
 struct Level {
@@ -406,7 +414,14 @@ fn level_keypoints(
     let umax = disc_half_widths(half);
     found
         .iter()
-        .map(|c| (c.x, c.y, c.response as f32, ic_angle(img, w, c.x, c.y, &umax)))
+        .map(|c| {
+            (
+                c.x,
+                c.y,
+                c.response as f32,
+                ic_angle(img, w, c.x, c.y, &umax),
+            )
+        })
         .collect()
 }
 
@@ -441,23 +456,37 @@ pub fn orb_detect_and_compute(
     );
     let wta_k = params.wta_k as usize;
     let pattern = orb_pattern(params.patch_size as usize, wta_k);
-    let per_level: Vec<Result<(Vec<Keypoint>, Vec<u8>), String>> = levels
+    let per_level: Vec<Result<LevelOutput, String>> = levels
         .par_iter()
         .zip(budgets.par_iter())
         .enumerate()
         .map(|(l, (level, &budget))| {
-            let data = level.image.as_u8().ok_or("internal: pyramid level is not u8")?;
+            let data = level
+                .image
+                .as_u8()
+                .ok_or("internal: pyramid level is not u8")?;
             let found = level_keypoints(data, level.w, level.h, budget, params);
             if found.is_empty() {
                 return Ok((Vec::new(), Vec::new()));
             }
-            let blurred =
-                gaussian_blur(&level.image, 2.0, 2.0, 7, 7, BorderMode::Reflect101, 0.0);
-            let smooth = blurred.as_u8().ok_or("internal: smoothing changed the sample type")?;
+            let blurred = gaussian_blur(&level.image, 2.0, 2.0, 7, 7, BorderMode::Reflect101, 0.0);
+            let smooth = blurred
+                .as_u8()
+                .ok_or("internal: smoothing changed the sample type")?;
             let mut data = vec![0u8; found.len() * BYTES];
             let mut offsets = Vec::with_capacity(pattern.len());
             for (row, &(x, y, _, angle)) in data.chunks_exact_mut(BYTES).zip(&found) {
-                describe_at(smooth, level.w, x, y, angle, &pattern, wta_k, &mut offsets, row);
+                describe_at(
+                    smooth,
+                    level.w,
+                    x,
+                    y,
+                    angle,
+                    &pattern,
+                    wta_k,
+                    &mut offsets,
+                    row,
+                );
             }
             let keypoints = found
                 .iter()
@@ -824,7 +853,10 @@ mod tests {
 
     #[test]
     fn budgets_follow_opencv() {
-        assert_eq!(level_budgets(500, 8, 1.2), vec![109, 90, 75, 63, 52, 44, 36, 31]);
+        assert_eq!(
+            level_budgets(500, 8, 1.2),
+            vec![109, 90, 75, 63, 52, 44, 36, 31]
+        );
         for (n, l, f) in [(2000, 8, 1.2), (1, 3, 2.0), (7, 1, 1.5), (100, 32, 1.01)] {
             let b = level_budgets(n, l, f);
             assert_eq!((b.len(), b.iter().sum::<usize>()), (l, n));
@@ -856,7 +888,10 @@ mod tests {
         let a = 7.0 * 2.0 * 800.0f64 * 800.0;
         let expected = -0.04 * a * a * (1.0 / (4.0 * 7.0 * 255.0f64)).powi(4);
         let got = harris_at(edge.as_u8().unwrap(), 9, 4, 4);
-        assert!((got - expected).abs() < 1e-12 * expected.abs(), "{got} vs {expected}");
+        assert!(
+            (got - expected).abs() < 1e-12 * expected.abs(),
+            "{got} vs {expected}"
+        );
     }
 
     #[test]
@@ -865,10 +900,11 @@ mod tests {
         assert_eq!(umax[0], 15);
         assert_eq!(umax[15], 3); // ⌊√(15.5² − 15²)⌋ = ⌊3.9⌋
         let c = 20;
-        let cases: [(Box<dyn Fn(usize, usize) -> u8>, f32); 4] = [
-            (Box::new(|x, _| (x * 5) as u8), 0.0),           // brighter to the right
-            (Box::new(|_, y| (y * 5) as u8), 90.0),          // brighter downwards
-            (Box::new(|x, _| (200 - x * 5) as u8), 180.0),   // brighter to the left
+        type Ramp = Box<dyn Fn(usize, usize) -> u8>;
+        let cases: [(Ramp, f32); 4] = [
+            (Box::new(|x, _| (x * 5) as u8), 0.0),  // brighter to the right
+            (Box::new(|_, y| (y * 5) as u8), 90.0), // brighter downwards
+            (Box::new(|x, _| (200 - x * 5) as u8), 180.0), // brighter to the left
             (Box::new(|x, y| (x * 2 + 100 - y * 2) as u8), 315.0), // right and up
         ];
         for (f, expected) in cases {
@@ -896,14 +932,28 @@ mod tests {
         for (angle, pick) in [(0.0f32, 0usize), (90.0, 1)] {
             let mut out = [0u8; 32];
             let mut offsets = Vec::new();
-            describe_at(img.as_u8().unwrap(), 40, 20, 20, angle, &pattern, 2, &mut offsets, &mut out);
+            describe_at(
+                img.as_u8().unwrap(),
+                40,
+                20,
+                20,
+                angle,
+                &pattern,
+                2,
+                &mut offsets,
+                &mut out,
+            );
             for (t, pair) in pattern.chunks_exact(2).enumerate() {
                 let (a, b) = if pick == 0 {
                     (pair[0].0, pair[1].0)
                 } else {
                     (-pair[0].1, -pair[1].1)
                 };
-                assert_eq!(out[t / 8] >> (t % 8) & 1 == 1, a < b, "angle {angle} test {t}");
+                assert_eq!(
+                    out[t / 8] >> (t % 8) & 1 == 1,
+                    a < b,
+                    "angle {angle} test {t}"
+                );
             }
         }
     }
@@ -953,9 +1003,19 @@ mod tests {
         assert!(k.iter().any(|kp| kp.octave > 2));
         // FAST score ranking and other WTA_K also run.
         for q in [
-            OrbParams { score: OrbScore::Fast, ..p.clone() },
-            OrbParams { wta_k: 4, ..p.clone() },
-            OrbParams { first_level: 1, n_levels: 3, ..p.clone() },
+            OrbParams {
+                score: OrbScore::Fast,
+                ..p.clone()
+            },
+            OrbParams {
+                wta_k: 4,
+                ..p.clone()
+            },
+            OrbParams {
+                first_level: 1,
+                n_levels: 3,
+                ..p.clone()
+            },
         ] {
             let (k2, d2) = orb_detect_and_compute(&img, &q).unwrap();
             assert!(!k2.is_empty() && d2.len() == k2.len());
@@ -992,7 +1052,10 @@ mod tests {
             let (r, forward) = rotated(&img, degrees);
             let other = orb_detect_and_compute(&r, &p).unwrap();
             let (ratio, n) = correct_ratio(&base, &other, &forward, 3.0);
-            assert!(ratio > 0.7 && n > 60, "{degrees}°: ratio {ratio}, {n} matches");
+            assert!(
+                ratio > 0.7 && n > 60,
+                "{degrees}°: ratio {ratio}, {n} matches"
+            );
         }
     }
 
@@ -1008,7 +1071,10 @@ mod tests {
             let other = orb_detect_and_compute(&scaled, &p).unwrap();
             let map = |x: f64, y: f64| ((x + 0.5) * factor - 0.5, (y + 0.5) * factor - 0.5);
             let (ratio, n) = correct_ratio(&base, &other, map, 3.0 * factor.max(1.0));
-            assert!(ratio > 0.5 && n > 30, "×{factor}: ratio {ratio}, {n} matches");
+            assert!(
+                ratio > 0.5 && n > 30,
+                "×{factor}: ratio {ratio}, {n} matches"
+            );
         }
     }
 
@@ -1025,9 +1091,27 @@ mod tests {
         // u16 (×257) and f32 (/255) give the u8 result.
         let img = scene(200, 41);
         let v = img.as_u8().unwrap();
-        let w16 = Image::from_u16(200, 200, Channels::Gray, v.iter().map(|&s| u16::from(s) * 257).collect()).unwrap();
-        let wf = Image::from_f32(200, 200, Channels::Gray, v.iter().map(|&s| f32::from(s) / 255.0).collect()).unwrap();
-        let rgb = Image::from_u8(200, 200, Channels::Rgb, v.iter().flat_map(|&s| [s, s, s]).collect()).unwrap();
+        let w16 = Image::from_u16(
+            200,
+            200,
+            Channels::Gray,
+            v.iter().map(|&s| u16::from(s) * 257).collect(),
+        )
+        .unwrap();
+        let wf = Image::from_f32(
+            200,
+            200,
+            Channels::Gray,
+            v.iter().map(|&s| f32::from(s) / 255.0).collect(),
+        )
+        .unwrap();
+        let rgb = Image::from_u8(
+            200,
+            200,
+            Channels::Rgb,
+            v.iter().flat_map(|&s| [s, s, s]).collect(),
+        )
+        .unwrap();
         let a = orb_detect_and_compute(&img, &p).unwrap();
         assert!(!a.0.is_empty());
         for other in [w16, wf, rgb] {
@@ -1043,18 +1127,48 @@ mod tests {
             ..OrbParams::default()
         };
         let many = orb_detect_and_compute(&img, &p).unwrap();
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
-        assert_eq!(pool.install(|| orb_detect_and_compute(&img, &p)).unwrap(), many);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        assert_eq!(
+            pool.install(|| orb_detect_and_compute(&img, &p)).unwrap(),
+            many
+        );
         let d = OrbParams::default();
         for bad in [
-            OrbParams { max_features: 0, ..d.clone() },
-            OrbParams { scale_factor: 1.0, ..d.clone() },
-            OrbParams { scale_factor: f64::NAN, ..d.clone() },
-            OrbParams { n_levels: 0, ..d.clone() },
-            OrbParams { first_level: 8, ..d.clone() },
-            OrbParams { wta_k: 5, ..d.clone() },
-            OrbParams { patch_size: 3, ..d.clone() },
-            OrbParams { fast_threshold: 256, ..d.clone() },
+            OrbParams {
+                max_features: 0,
+                ..d.clone()
+            },
+            OrbParams {
+                scale_factor: 1.0,
+                ..d.clone()
+            },
+            OrbParams {
+                scale_factor: f64::NAN,
+                ..d.clone()
+            },
+            OrbParams {
+                n_levels: 0,
+                ..d.clone()
+            },
+            OrbParams {
+                first_level: 8,
+                ..d.clone()
+            },
+            OrbParams {
+                wta_k: 5,
+                ..d.clone()
+            },
+            OrbParams {
+                patch_size: 3,
+                ..d.clone()
+            },
+            OrbParams {
+                fast_threshold: 256,
+                ..d.clone()
+            },
         ] {
             assert!(Orb::new(bad.clone()).is_err());
             assert!(orb_detect_and_compute(&img, &bad).is_err());
