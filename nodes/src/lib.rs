@@ -77,6 +77,9 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<detect::hough::HoughSegments>()?;
     registry.register::<detect::hough_circles::HoughCircles>()?;
     registry.register::<detect::template::TemplateMatch>()?;
+    registry.register::<describe::orb::Orb>()?;
+    registry.register::<describe::brief::Brief>()?;
+    registry.register::<describe::hog::Hog>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<analyze::evaluate::Evaluate>()?;
