@@ -1637,6 +1637,20 @@ mod tests {
     use super::*;
 
     #[test]
+    fn list_positions_count_from_either_end() {
+        assert_eq!(list_position(3, 0), Some(0));
+        assert_eq!(list_position(3, 2), Some(2));
+        assert_eq!(list_position(3, 3), None);
+        assert_eq!(list_position(3, -1), Some(2));
+        assert_eq!(list_position(3, -3), Some(0));
+        assert_eq!(list_position(3, -4), None);
+        assert_eq!(list_position(0, 0), None);
+        assert_eq!(list_position(0, -1), None);
+        assert_eq!(list_position(5, i64::MIN), None);
+        assert_eq!(list_position(5, i64::MAX), None);
+    }
+
+    #[test]
     fn topological_order_is_stable_and_skips_cycles() {
         let deps: Vec<BTreeSet<usize>> = vec![
             BTreeSet::from([2]),

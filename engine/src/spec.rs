@@ -605,3 +605,28 @@ pub fn split_index(text: &str) -> Result<(&str, Option<i64>), String> {
         Err(_) => Err(format!("index `{inner}` is not an integer")),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn indices_split_off_references() {
+        assert_eq!(split_index("a.b"), Ok(("a.b", None)));
+        assert_eq!(split_index("a.b[0]"), Ok(("a.b", Some(0))));
+        assert_eq!(split_index("a.b[-1]"), Ok(("a.b", Some(-1))));
+        assert_eq!(split_index("a.b[ 7 ]"), Ok(("a.b", Some(7))));
+        for bad in [
+            "a.b[x]",
+            "a.b[1",
+            "a.b[]",
+            "a.b]",
+            "a.b[1]x",
+            "a.b[0][1]",
+            "a.b[1.5]",
+            "a.b[99999999999999999999]",
+        ] {
+            assert!(split_index(bad).is_err(), "{bad}");
+        }
+    }
+}
