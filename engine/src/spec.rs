@@ -14,6 +14,11 @@
 //!     outputs: { "gray": "gray.image" },
 //! )
 //! ```
+//!
+//! A node input is a reference `"node.port"`, an indexed reference `"node.port[i]"` (one element
+//! of a `List<T>` output; negative indices count from the end) or a list literal of references
+//! `["left.image", "right.image"]` (a `List<T>` of outputs of one type). Graph `outputs` take
+//! references and indexed references.
 
 use std::sync::Arc;
 
