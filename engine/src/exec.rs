@@ -28,8 +28,9 @@ use rayon::prelude::*;
 
 use crate::cache::DiskCache;
 use crate::diag::suggest;
-use crate::graph::{Graph, Node};
+use crate::graph::{EdgeSource, Graph, InputEdge, Node, Tap};
 use crate::op::{Inputs, OpError, RunContext};
+use crate::resolve::list_position;
 use crate::value::Value;
 
 /// Bumped when the key derivation or cache format changes.
@@ -196,8 +197,8 @@ struct Plan {
     keys: Vec<Option<Key>>,
     /// Failures found while planning (fingerprints).
     failed: HashMap<usize, String>,
-    /// Requested outputs: (name, canonical node, port).
-    requested: Vec<(String, usize, usize)>,
+    /// Requested outputs: (name, canonical node, port, element index).
+    requested: Vec<(String, usize, usize, Option<i64>)>,
     /// Nodes whose status is `Shared`.
     shared: Vec<bool>,
 }
@@ -246,7 +247,7 @@ fn plan(graph: &Graph, selected: &[String], cache: Option<&DiskCache>) -> Result
     let mut roots = Vec::new();
     if selected.is_empty() {
         for out in &graph.outputs {
-            requested.push((out.name.clone(), out.from.node, out.from.port));
+            requested.push((out.name.clone(), out.from.node, out.from.port, out.index));
             roots.push(out.from.node);
         }
         roots.extend((0..n).filter(|&i| graph.nodes[i].info.side_effects));
@@ -259,12 +260,12 @@ fn plan(graph: &Graph, selected: &[String], cache: Option<&DiskCache>) -> Result
                         .map(str::to_string),
                 });
             };
-            if !requested.iter().any(|(r, _, _)| r == name) {
-                requested.push((out.name.clone(), out.from.node, out.from.port));
+            if !requested.iter().any(|(r, _, _, _)| r == name) {
+                requested.push((out.name.clone(), out.from.node, out.from.port, out.index));
                 roots.push(out.from.node);
             }
         }
-        requested.sort_by_key(|(name, _, _)| graph.outputs.iter().position(|o| &o.name == name));
+        requested.sort_by_key(|(name, _, _, _)| graph.outputs.iter().position(|o| &o.name == name));
     }
 
     // Everything the roots depend on.
@@ -274,7 +275,14 @@ fn plan(graph: &Graph, selected: &[String], cache: Option<&DiskCache>) -> Result
         if std::mem::replace(&mut needed[i], true) {
             continue;
         }
-        stack.extend(graph.nodes[i].inputs.iter().flatten().map(|e| e.from.node));
+        stack.extend(
+            graph.nodes[i]
+                .inputs
+                .iter()
+                .flatten()
+                .flat_map(InputEdge::sources)
+                .map(|from| from.node),
+        );
     }
 
     // Keys, in topological order; identical non-side-effect nodes share one result.
@@ -331,9 +339,15 @@ fn plan(graph: &Graph, selected: &[String], cache: Option<&DiskCache>) -> Result
             continue;
         }
         run[c] = true;
-        stack.extend(node.inputs.iter().flatten().map(|e| canonical[e.from.node]));
+        stack.extend(
+            node.inputs
+                .iter()
+                .flatten()
+                .flat_map(InputEdge::sources)
+                .map(|from| canonical[from.node]),
+        );
     }
-    for (_, node, _) in &mut requested {
+    for (_, node, _, _) in &mut requested {
         *node = canonical[*node];
     }
     // A shared node counts as shared only if its canonical twin is actually used.
@@ -367,13 +381,39 @@ fn node_key(node: &Node, fingerprint: &[u8], keys: &[Option<Key>]) -> Option<Key
         field(&mut h, value.to_string().as_bytes());
     }
     field(&mut h, fingerprint);
+    let tap = |h: &mut blake3::Hasher, tap: &Tap| -> Option<()> {
+        h.update(&keys[tap.from.node]?);
+        h.update(&(tap.from.port as u64).to_le_bytes());
+        Some(())
+    };
     for input in &node.inputs {
-        match input {
-            Some(edge) => {
-                let key = keys[edge.from.node]?;
+        match input.as_ref().map(|e| (e, &e.source)) {
+            // A whole port hashes as it always has, so existing cache entries stay valid.
+            Some((edge, EdgeSource::Tap(t @ Tap { index: None, .. }))) => {
                 h.update(&[1, u8::from(edge.mapped)]);
-                h.update(&key);
-                h.update(&(edge.from.port as u64).to_le_bytes());
+                tap(&mut h, t)?;
+            }
+            Some((edge, EdgeSource::Tap(t @ Tap { index: Some(i), .. }))) => {
+                h.update(&[3, u8::from(edge.mapped)]);
+                tap(&mut h, t)?;
+                h.update(&i.to_le_bytes());
+            }
+            Some((edge, EdgeSource::List { items, element })) => {
+                h.update(&[2, u8::from(edge.mapped)]);
+                field(&mut h, element.to_string().as_bytes());
+                h.update(&(items.len() as u64).to_le_bytes());
+                for t in items {
+                    tap(&mut h, t)?;
+                    match t.index {
+                        Some(i) => {
+                            h.update(&[1]);
+                            h.update(&i.to_le_bytes());
+                        }
+                        None => {
+                            h.update(&[0]);
+                        }
+                    }
+                }
             }
             None => {
                 h.update(&[0]);
@@ -429,7 +469,8 @@ fn execute(
             .inputs
             .iter()
             .flatten()
-            .map(|e| canonical[e.from.node])
+            .flat_map(InputEdge::sources)
+            .map(|from| canonical[from.node])
             .collect();
         s.sort_unstable();
         s.dedup();
@@ -442,7 +483,7 @@ fn execute(
         sources[i] = s;
     }
     let mut pinned = vec![false; n];
-    for (_, node, _) in &plan.requested {
+    for (_, node, _, _) in &plan.requested {
         pinned[*node] = true;
     }
     let state = State {
@@ -514,15 +555,18 @@ fn execute(
         .map(|r| r.into_inner().unwrap_or(None))
         .collect();
     let mut failures = failures.into_inner().unwrap_or_default();
-    failures.sort_by_key(|(i, _)| *i);
     let mut outputs = Vec::new();
-    for (name, node, port) in &plan.requested {
+    for (name, node, port, index) in &plan.requested {
         if let Some(Some(values)) = results.get(*node)
             && let Some(v) = values.get(*port)
         {
-            outputs.push((name.clone(), v.clone()));
+            match select(graph, *node, *port, *index, v) {
+                Ok(v) => outputs.push((name.clone(), v)),
+                Err(message) => failures.push((*node, format!("output `{name}`: {message}"))),
+            }
         }
     }
+    failures.sort_by_key(|(i, _)| *i);
     RunReport {
         outputs,
         failures: failures
@@ -570,17 +614,23 @@ fn run_task<'s>(scope: &rayon::Scope<'s>, state: &'s State<'s>, i: usize) {
     // Gather inputs; an upstream failure skips this node.
     let mut upstream_failed = state.plan.failed.contains_key(&i);
     let mut inputs: Vec<Option<Value>> = Vec::with_capacity(node.inputs.len());
-    for edge in &node.inputs {
-        let value = edge.as_ref().and_then(|e| {
-            let src = state.plan.canonical[e.from.node];
-            let guard = state.results[src].lock().ok()?;
-            guard
-                .as_ref()
-                .and_then(|vals| vals.get(e.from.port).cloned())
-        });
-        if edge.is_some() && value.is_none() {
-            upstream_failed = true;
-        }
+    let mut selection_error = None;
+    for (edge, spec) in node.inputs.iter().zip(&node.info.inputs) {
+        let value = match edge {
+            Some(e) => match gather(state, e) {
+                Ok(Some(v)) => Some(v),
+                Ok(None) => {
+                    upstream_failed = true;
+                    None
+                }
+                Err(message) => {
+                    selection_error
+                        .get_or_insert_with(|| format!("input `{}`: {message}", spec.name));
+                    None
+                }
+            },
+            None => None,
+        };
         inputs.push(value);
     }
 
@@ -588,6 +638,8 @@ fn run_task<'s>(scope: &rayon::Scope<'s>, state: &'s State<'s>, i: usize) {
         record_failure(state, i, message.clone());
     } else if upstream_failed {
         set_status(state, i, NodeStatus::Skipped);
+    } else if let Some(message) = selection_error {
+        record_failure(state, i, message);
     } else {
         let ctx = RunContext {
             node: node.name.clone(),
@@ -649,6 +701,67 @@ fn run_task<'s>(scope: &rayon::Scope<'s>, state: &'s State<'s>, i: usize) {
         if state.pending[d].fetch_sub(1, Ordering::AcqRel) == 1 {
             scope.spawn(move |scope| run_task(scope, state, d));
         }
+    }
+}
+
+/// The value an edge delivers: `Ok(None)` when a source has no result (it failed), `Err` when
+/// an index is out of range.
+fn gather(state: &State<'_>, edge: &InputEdge) -> Result<Option<Value>, String> {
+    let read = |tap: &Tap| -> Result<Option<Value>, String> {
+        let src = state.plan.canonical[tap.from.node];
+        let value = state.results[src].lock().ok().and_then(|guard| {
+            guard
+                .as_ref()
+                .and_then(|vals| vals.get(tap.from.port).cloned())
+        });
+        match value {
+            Some(v) => select(state.graph, tap.from.node, tap.from.port, tap.index, &v).map(Some),
+            None => Ok(None),
+        }
+    };
+    match &edge.source {
+        EdgeSource::Tap(tap) => read(tap),
+        EdgeSource::List { items, element } => {
+            let mut values = Vec::with_capacity(items.len());
+            for tap in items {
+                match read(tap)? {
+                    Some(v) => values.push(v),
+                    None => return Ok(None),
+                }
+            }
+            Ok(Some(Value::list(element.clone(), values)))
+        }
+    }
+}
+
+/// `value` itself, or its element `index` (negative: from the end); out of range is an error
+/// naming the node, port, index and length.
+fn select(
+    graph: &Graph,
+    node: usize,
+    port: usize,
+    index: Option<i64>,
+    value: &Value,
+) -> Result<Value, String> {
+    let Some(i) = index else {
+        return Ok(value.clone());
+    };
+    let node = &graph.nodes[node];
+    let port = node.info.outputs.get(port).map_or("?", |p| p.name.as_str());
+    let Value::List(list) = value else {
+        return Err(format!(
+            "`{}.{port}` is not a list, it cannot be indexed with [{i}]",
+            node.name
+        ));
+    };
+    match list_position(list.items.len(), i) {
+        Some(k) => Ok(list.items[k].clone()),
+        None => Err(format!(
+            "index {i} is out of range for `{}.{port}`, a list of {} element{}",
+            node.name,
+            list.items.len(),
+            if list.items.len() == 1 { "" } else { "s" }
+        )),
     }
 }
 

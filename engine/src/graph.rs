@@ -33,13 +33,67 @@ pub struct PortRef {
     pub port: usize,
 }
 
+/// One value an edge reads: an output port, or one element of a list output (`node.port[i]`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Tap {
+    /// The output port.
+    pub from: PortRef,
+    /// For `node.port[i]`: the element index; negative counts from the end (`-1` is the last).
+    /// Checked against the list's length at run time.
+    pub index: Option<i64>,
+}
+
+impl Tap {
+    /// The whole output port.
+    pub fn port(from: PortRef) -> Tap {
+        Tap { from, index: None }
+    }
+}
+
+/// Where an input's value comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum EdgeSource {
+    /// One output port, or one element of it.
+    Tap(Tap),
+    /// A list literal `["a.port", "b.port"]`: a `List<element>` built from the values, in order.
+    List {
+        /// The referenced values, in order (never empty).
+        items: Vec<Tap>,
+        /// Their common type.
+        element: PortType,
+    },
+}
+
 /// How one input of a node is fed.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct InputEdge {
     /// Where the value comes from.
-    pub from: PortRef,
+    pub source: EdgeSource,
     /// True when the source is `List<T>` feeding a port of type `T`: the node is mapped over it.
     pub mapped: bool,
+}
+
+impl InputEdge {
+    /// An edge reading a whole output port.
+    pub fn port(from: PortRef, mapped: bool) -> InputEdge {
+        InputEdge {
+            source: EdgeSource::Tap(Tap::port(from)),
+            mapped,
+        }
+    }
+
+    /// Every value this edge reads, in order.
+    pub fn taps(&self) -> &[Tap] {
+        match &self.source {
+            EdgeSource::Tap(tap) => std::slice::from_ref(tap),
+            EdgeSource::List { items, .. } => items,
+        }
+    }
+
+    /// Every output port this edge reads, in order (with repeats).
+    pub fn sources(&self) -> impl Iterator<Item = PortRef> + '_ {
+        self.taps().iter().map(|t| t.from)
+    }
 }
 
 /// A node ready to run.
@@ -87,6 +141,8 @@ pub struct GraphOutput {
     pub name: String,
     /// Where it comes from.
     pub from: PortRef,
+    /// For `node.port[i]`: the element of the list output (negative counts from the end).
+    pub index: Option<i64>,
     /// Its type.
     pub ty: PortType,
 }
@@ -115,8 +171,8 @@ impl Graph {
     pub fn consumers(&self) -> Vec<Vec<usize>> {
         let mut consumers = vec![Vec::new(); self.nodes.len()];
         for (i, node) in self.nodes.iter().enumerate() {
-            for edge in node.inputs.iter().flatten() {
-                let list: &mut Vec<usize> = &mut consumers[edge.from.node];
+            for from in node.inputs.iter().flatten().flat_map(InputEdge::sources) {
+                let list: &mut Vec<usize> = &mut consumers[from.node];
                 if list.last() != Some(&i) {
                     list.push(i);
                 }
@@ -140,24 +196,43 @@ impl Graph {
         for (i, node) in self.nodes.iter().enumerate() {
             for (port, edge) in node.inputs.iter().enumerate() {
                 let Some(edge) = edge else { continue };
-                let src = &self.nodes[edge.from.node];
-                let out_name = src
-                    .info
-                    .outputs
-                    .get(edge.from.port)
-                    .map_or("?", |p| p.name.as_str());
                 let in_name = node.info.inputs.get(port).map_or("?", |p| p.name.as_str());
-                let ty = src
-                    .output_types
-                    .get(edge.from.port)
-                    .map(|t| t.to_string())
-                    .unwrap_or_default();
                 let style = if edge.mapped { ", style=bold" } else { "" };
-                out.push_str(&format!(
-                    "    n{} -> n{i} [label={}{style}];\n",
-                    edge.from.node,
-                    dot_quote(&format!("{out_name} → {in_name}\\n{ty}"))
-                ));
+                let taps = edge.taps();
+                for (k, tap) in taps.iter().enumerate() {
+                    let src = &self.nodes[tap.from.node];
+                    let out_name = src
+                        .info
+                        .outputs
+                        .get(tap.from.port)
+                        .map_or("?", |p| p.name.as_str());
+                    let mut ty = src
+                        .output_types
+                        .get(tap.from.port)
+                        .map(|t| t.to_string())
+                        .unwrap_or_default();
+                    let mut out_text = out_name.to_string();
+                    if let Some(index) = tap.index {
+                        out_text.push_str(&format!("[{index}]"));
+                        ty = src
+                            .output_types
+                            .get(tap.from.port)
+                            .and_then(PortType::element)
+                            .map(|t| t.to_string())
+                            .unwrap_or_default();
+                    }
+                    let in_text =
+                        if taps.len() > 1 || matches!(edge.source, EdgeSource::List { .. }) {
+                            format!("{in_name}[{k}]")
+                        } else {
+                            in_name.to_string()
+                        };
+                    out.push_str(&format!(
+                        "    n{} -> n{i} [label={}{style}];\n",
+                        tap.from.node,
+                        dot_quote(&format!("{out_text} → {in_text}\\n{ty}"))
+                    ));
+                }
             }
         }
         for (k, output) in self.outputs.iter().enumerate() {

@@ -12,11 +12,11 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use crate::diag::{Code, Diagnostic, Diagnostics, SourceFile, suggest};
-use crate::graph::{Graph, GraphOutput, InputEdge, Location, Node, PortRef};
+use crate::graph::{EdgeSource, Graph, GraphOutput, InputEdge, Location, Node, PortRef, Tap};
 use crate::op::Registry;
 use crate::params::{ParamMap, ParamSpec, ParamType, ParamValue};
 use crate::ron_syntax::{self, RonValue, Span, Spanned};
-use crate::spec::{GraphSpec, NodeSpec, graph_from_ron, split_reference};
+use crate::spec::{GraphSpec, InputRef, NodeSpec, graph_from_ron, split_index, split_reference};
 use crate::types::PortType;
 
 /// The pseudo-operator that includes another graph file.
@@ -296,13 +296,28 @@ pub fn load_source(
     let overrides: Vec<&Override> = overrides.iter().collect();
     let exports = ctx.resolve_scope(&spec, "", &scope_inputs, &overrides, 0);
     let mut outputs = Vec::new();
-    for (name, _) in &spec.outputs {
-        if let Some(Source::Port(from, ty)) = exports.get(&name.value) {
-            outputs.push(GraphOutput {
+    for (name, reference) in &spec.outputs {
+        match exports.get(&name.value) {
+            Some(Source::Port(tap, ty)) => outputs.push(GraphOutput {
                 name: name.value.clone(),
-                from: *from,
+                from: tap.from,
+                index: tap.index,
                 ty: ty.clone(),
-            });
+            }),
+            Some(Source::List { .. }) => ctx.diags.push(
+                Diagnostic::at(
+                    Code::BadReference,
+                    source,
+                    reference.span,
+                    format!(
+                        "output `{}` is a list literal; a graph output names one port",
+                        name.value
+                    ),
+                )
+                .label("a list literal")
+                .help("feed the list to a node and output that node's port"),
+            ),
+            _ => {}
         }
     }
     if !ctx.diags.is_empty() {
@@ -330,8 +345,14 @@ fn canonical(path: &Path) -> PathBuf {
 /// What a reference resolves to.
 #[derive(Debug, Clone)]
 enum Source {
-    /// A typed port of a runnable node.
-    Port(PortRef, PortType),
+    /// A typed port (or one element of it) of a runnable node.
+    Port(Tap, PortType),
+    /// A list literal of runnable ports: `ty` is `List<element>`.
+    List {
+        items: Vec<Tap>,
+        element: PortType,
+        ty: PortType,
+    },
     /// A typed port of a node that has its own errors: downstream type checks still happen, but
     /// the consumer cannot run.
     Typed(PortType),
@@ -342,7 +363,7 @@ enum Source {
 impl Source {
     fn ty(&self) -> Option<&PortType> {
         match self {
-            Source::Port(_, t) | Source::Typed(t) => Some(t),
+            Source::Port(_, t) | Source::Typed(t) | Source::List { ty: t, .. } => Some(t),
             Source::Poisoned => None,
         }
     }
@@ -400,8 +421,9 @@ impl Resolver<'_> {
         // Dependencies by name, for ordering and cycle detection.
         let mut deps: Vec<BTreeSet<usize>> = vec![BTreeSet::new(); spec.nodes.len()];
         for (i, node) in spec.nodes.iter().enumerate() {
-            for (_, reference) in &node.inputs {
-                if let Some((target, _)) = split_reference(&reference.value)
+            for reference in node.inputs.iter().flat_map(|(_, r)| r.references()) {
+                if let Ok((base, _)) = split_index(&reference.value)
+                    && let Some((target, _)) = split_reference(base)
                     && let Some(&j) = index.get(target)
                 {
                     deps[i].insert(j);
@@ -548,8 +570,8 @@ impl Resolver<'_> {
                 .help(hint),
             );
             // Still check references, so dangling ones are reported too.
-            for (_, reference) in &node.inputs {
-                self.resolve_reference(source, reference, index, slots, scope_inputs, "input");
+            for (_, input) in &node.inputs {
+                self.resolve_input(source, input, index, slots, scope_inputs);
             }
             return Slot::Failed;
         };
@@ -572,9 +594,8 @@ impl Resolver<'_> {
 
         let mut inputs: Vec<Option<InputEdge>> = vec![None; info.inputs.len()];
         let mut poisoned = false;
-        for (port, reference) in &node.inputs {
-            let resolved =
-                self.resolve_reference(source, reference, index, slots, scope_inputs, "input");
+        for (port, input) in &node.inputs {
+            let resolved = self.resolve_input(source, input, index, slots, scope_inputs);
             let Some(port_index) = info.inputs.iter().position(|p| p.name == port.value) else {
                 let names: Vec<&str> = info.inputs.iter().map(|p| p.name.as_str()).collect();
                 self.diags.push(unknown_name_diag(
@@ -600,7 +621,7 @@ impl Resolver<'_> {
             } else {
                 self.diags.push(type_mismatch(
                     source,
-                    reference,
+                    &input.as_text(),
                     ty,
                     &node.name.value,
                     port,
@@ -609,8 +630,17 @@ impl Resolver<'_> {
                 continue;
             };
             match resolved {
-                Some(Source::Port(from, _)) => {
-                    inputs[port_index] = Some(InputEdge { from, mapped })
+                Some(Source::Port(tap, _)) => {
+                    inputs[port_index] = Some(InputEdge {
+                        source: EdgeSource::Tap(tap),
+                        mapped,
+                    })
+                }
+                Some(Source::List { items, element, .. }) => {
+                    inputs[port_index] = Some(InputEdge {
+                        source: EdgeSource::List { items, element },
+                        mapped,
+                    })
                 }
                 _ => poisoned = true,
             }
@@ -846,7 +876,7 @@ impl Resolver<'_> {
                 continue;
             };
             let given = node.inputs.iter().find(|(p, _)| p.value == name.value);
-            let Some((port, reference)) = given else {
+            let Some((port, input)) = given else {
                 self.diags.push(
                     Diagnostic::at(
                         Code::MissingInput,
@@ -862,16 +892,16 @@ impl Resolver<'_> {
                 ok = false;
                 continue;
             };
-            match self.resolve_reference(source, reference, index, slots, scope_inputs, "input") {
+            match self.resolve_input(source, input, index, slots, scope_inputs) {
                 Some(src) if src.ty() == Some(&declared) => {
-                    ok &= matches!(src, Source::Port(..));
+                    ok &= matches!(src, Source::Port(..) | Source::List { .. });
                     bound.insert(name.value.clone(), src);
                 }
                 Some(src) => {
                     if let Some(ty) = src.ty() {
                         self.diags.push(type_mismatch(
                             source,
-                            reference,
+                            &input.as_text(),
                             ty,
                             &node.name.value,
                             port,
@@ -932,7 +962,108 @@ impl Resolver<'_> {
         Slot::Subgraph { exports, names }
     }
 
-    /// Resolves `node.port` in a scope, reporting malformed, dangling and unknown-port references.
+    /// Resolves a node input: one reference, or a list literal of references of one type.
+    fn resolve_input(
+        &mut self,
+        source: &Arc<SourceFile>,
+        input: &InputRef,
+        index: &HashMap<&str, usize>,
+        slots: &[Slot],
+        scope_inputs: &HashMap<String, Source>,
+    ) -> Option<Source> {
+        let (items, span) = match input {
+            InputRef::One(r) => {
+                return self.resolve_reference(source, r, index, slots, scope_inputs, "input");
+            }
+            InputRef::List { items, span } => (items, *span),
+        };
+        if items.is_empty() {
+            self.diags.push(
+                Diagnostic::at(Code::BadReference, source, span, "empty input list `[]`")
+                    .label("no references")
+                    .help("a list literal names at least one output, e.g. [\"left.image\", \"right.image\"]"),
+            );
+            return None;
+        }
+        let mut first: Option<(&Spanned<String>, PortType)> = None;
+        let mut taps = Vec::with_capacity(items.len());
+        let (mut ok, mut runnable, mut poisoned) = (true, true, false);
+        for item in items {
+            let Some(src) =
+                self.resolve_reference(source, item, index, slots, scope_inputs, "input")
+            else {
+                ok = false;
+                continue;
+            };
+            let ty = match &src {
+                Source::Poisoned => {
+                    poisoned = true;
+                    continue;
+                }
+                Source::List { .. } => {
+                    self.diags.push(
+                        Diagnostic::at(
+                            Code::BadReference,
+                            source,
+                            item.span,
+                            format!("`{}` is itself a list literal", item.value),
+                        )
+                        .label("a list literal inside a list literal")
+                        .help("list literals cannot be nested"),
+                    );
+                    ok = false;
+                    continue;
+                }
+                Source::Port(_, t) | Source::Typed(t) => t.clone(),
+            };
+            match &first {
+                None => first = Some((item, ty.clone())),
+                Some((f, fty)) if *fty != ty => {
+                    self.diags.push(
+                        Diagnostic::at(
+                            Code::TypeMismatch,
+                            source,
+                            item.span,
+                            format!(
+                                "type mismatch in list: `{}` is {ty}, but `{}` is {fty}",
+                                item.value, f.value
+                            ),
+                        )
+                        .label(format!("this is {ty}"))
+                        .related(f.span, format!("the list's first element is {fty}"))
+                        .help("every element of a list literal has the same type"),
+                    );
+                    ok = false;
+                    continue;
+                }
+                Some(_) => {}
+            }
+            match src {
+                Source::Port(tap, _) => taps.push(tap),
+                _ => runnable = false,
+            }
+        }
+        if !ok {
+            return None;
+        }
+        if poisoned {
+            return Some(Source::Poisoned);
+        }
+        let (_, element) = first?;
+        let ty = element.clone().list_of();
+        Some(if runnable {
+            Source::List {
+                items: taps,
+                element,
+                ty,
+            }
+        } else {
+            Source::Typed(ty)
+        })
+    }
+
+    /// Resolves `node.port` or `node.port[i]` in a scope, reporting malformed, dangling,
+    /// unknown-port and non-list-indexed references.
     fn resolve_reference(
         &mut self,
         source: &Arc<SourceFile>,
@@ -942,7 +1073,122 @@ impl Resolver<'_> {
         scope_inputs: &HashMap<String, Source>,
         what: &str,
     ) -> Option<Source> {
-        let Some((target, port)) = split_reference(&reference.value) else {
+        let (base, element) = match split_index(&reference.value) {
+            Ok(split) => split,
+            Err(why) => {
+                self.diags.push(
+                    Diagnostic::at(
+                        Code::BadReference,
+                        source,
+                        reference.span,
+                        format!(
+                            "malformed {what} reference `{}`: {why}",
+                            reference.value
+                        ),
+                    )
+                    .label("expected `node.port` or `node.port[index]`")
+                    .help("an index selects one element of a list output: \"detect.keypoints[0]\", or \"detect.keypoints[-1]\" for the last"),
+                );
+                return None;
+            }
+        };
+        let resolved =
+            self.resolve_port_reference(source, reference, base, index, slots, scope_inputs, what)?;
+        match element {
+            None => Some(resolved),
+            Some(i) => self.index_source(source, reference, base, resolved, i),
+        }
+    }
+
+    /// Applies `[i]` to a resolved reference.
+    fn index_source(
+        &mut self,
+        source: &Arc<SourceFile>,
+        reference: &Spanned<String>,
+        base: &str,
+        resolved: Source,
+        i: i64,
+    ) -> Option<Source> {
+        let not_a_list = |ty: &PortType| {
+            Diagnostic::at(
+                Code::TypeMismatch,
+                source,
+                reference.span,
+                format!("`{base}` is {ty}, not a list: it cannot be indexed with `[{i}]`"),
+            )
+            .label(format!("this is {ty}"))
+            .help(format!(
+                "only list outputs can be indexed; write \"{base}\""
+            ))
+        };
+        match resolved {
+            Source::Poisoned => Some(Source::Poisoned),
+            Source::Typed(ty) => match ty.element() {
+                Some(element) => Some(Source::Typed(element.clone())),
+                None => {
+                    self.diags.push(not_a_list(&ty));
+                    None
+                }
+            },
+            Source::Port(tap, ty) => {
+                let Some(element) = ty.element() else {
+                    self.diags.push(not_a_list(&ty));
+                    return None;
+                };
+                if tap.index.is_some() {
+                    self.diags.push(
+                        Diagnostic::at(
+                            Code::BadReference,
+                            source,
+                            reference.span,
+                            format!("`{base}` already selects one list element; it cannot be indexed again"),
+                        )
+                        .label("indexed twice"),
+                    );
+                    return None;
+                }
+                Some(Source::Port(
+                    Tap {
+                        from: tap.from,
+                        index: Some(i),
+                    },
+                    element.clone(),
+                ))
+            }
+            Source::List { items, element, .. } => match list_position(items.len(), i) {
+                Some(k) => Some(Source::Port(items[k], element)),
+                None => {
+                    self.diags.push(
+                        Diagnostic::at(
+                            Code::BadReference,
+                            source,
+                            reference.span,
+                            format!(
+                                "index {i} is out of range for `{base}`, a list of {} elements",
+                                items.len()
+                            ),
+                        )
+                        .label("out of range"),
+                    );
+                    None
+                }
+            },
+        }
+    }
+
+    /// Resolves the `node.port` part of a reference.
+    #[allow(clippy::too_many_arguments)]
+    fn resolve_port_reference(
+        &mut self,
+        source: &Arc<SourceFile>,
+        reference: &Spanned<String>,
+        base: &str,
+        index: &HashMap<&str, usize>,
+        slots: &[Slot],
+        scope_inputs: &HashMap<String, Source>,
+        what: &str,
+    ) -> Option<Source> {
+        let Some((target, port)) = split_reference(base) else {
             self.diags.push(
                 Diagnostic::at(
                     Code::BadReference,
@@ -961,8 +1207,7 @@ impl Resolver<'_> {
             }
             if !scope_inputs.is_empty() {
                 let names: Vec<&str> = scope_inputs.keys().map(String::as_str).collect();
-                let port_span =
-                    Span::new(reference.span.end - port.len() - 1, reference.span.end - 1);
+                let port_span = sub_span(source, reference, base.len() - port.len(), base.len());
                 self.diags.push(unknown_name_diag(
                     Code::UnknownOutput,
                     source,
@@ -994,10 +1239,7 @@ impl Resolver<'_> {
             return None;
         };
         // The reference text is a quoted string: the port starts after the last `.`.
-        let port_span = Span::new(
-            reference.span.end.saturating_sub(port.len() + 1),
-            reference.span.end.saturating_sub(1),
-        );
+        let port_span = sub_span(source, reference, base.len() - port.len(), base.len());
         let port_name = Spanned {
             value: port.to_string(),
             span: port_span,
@@ -1029,7 +1271,7 @@ impl Resolver<'_> {
             Some(p) => {
                 let ty = output_types[p].clone();
                 Some(match global {
-                    Some(node) => Source::Port(PortRef { node, port: p }, ty),
+                    Some(node) => Source::Port(Tap::port(PortRef { node, port: p }), ty),
                     None => Source::Typed(ty),
                 })
             }
@@ -1111,6 +1353,33 @@ impl Resolver<'_> {
                 .or_insert_with(|| spec.default.clone());
         }
         ok.then_some(map)
+    }
+}
+
+/// The element `i` (negative: from the end) of a list of `len` elements, if in range.
+pub fn list_position(len: usize, i: i64) -> Option<usize> {
+    if i >= 0 {
+        usize::try_from(i).ok().filter(|&k| k < len)
+    } else {
+        usize::try_from(i.unsigned_abs())
+            .ok()
+            .and_then(|back| len.checked_sub(back))
+    }
+}
+
+/// The span of bytes `start..end` of a reference's text inside its quoted string in the file;
+/// the whole reference when the file spells it differently (e.g. with escapes).
+fn sub_span(source: &SourceFile, reference: &Spanned<String>, start: usize, end: usize) -> Span {
+    let quoted = source
+        .text
+        .get(reference.span.start..reference.span.end)
+        .and_then(|t| t.strip_prefix('"'))
+        .and_then(|t| t.strip_suffix('"'));
+    if quoted == Some(reference.value.as_str()) {
+        let at = reference.span.start + 1;
+        Span::new(at + start, at + end)
+    } else {
+        reference.span
     }
 }
 
@@ -1366,6 +1635,20 @@ fn describe(v: &RonValue) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn list_positions_count_from_either_end() {
+        assert_eq!(list_position(3, 0), Some(0));
+        assert_eq!(list_position(3, 2), Some(2));
+        assert_eq!(list_position(3, 3), None);
+        assert_eq!(list_position(3, -1), Some(2));
+        assert_eq!(list_position(3, -3), Some(0));
+        assert_eq!(list_position(3, -4), None);
+        assert_eq!(list_position(0, 0), None);
+        assert_eq!(list_position(0, -1), None);
+        assert_eq!(list_position(5, i64::MIN), None);
+        assert_eq!(list_position(5, i64::MAX), None);
+    }
 
     #[test]
     fn topological_order_is_stable_and_skips_cycles() {

@@ -14,6 +14,11 @@
 //!     outputs: { "gray": "gray.image" },
 //! )
 //! ```
+//!
+//! A node input is a reference `"node.port"`, an indexed reference `"node.port[i]"` (one element
+//! of a `List<T>` output; negative indices count from the end) or a list literal of references
+//! `["left.image", "right.image"]` (a `List<T>` of outputs of one type). Graph `outputs` take
+//! references and indexed references.
 
 use std::sync::Arc;
 
@@ -51,14 +56,64 @@ pub struct NodeSpec {
     pub name: Name,
     /// Operator id.
     pub op: Name,
-    /// Inputs: port name and `node.port` reference.
-    pub inputs: Vec<(Name, Name)>,
+    /// Inputs: port name and reference (`"node.port"`, `"node.port[i]"` or a list literal).
+    pub inputs: Vec<(Name, InputRef)>,
     /// Parameters as written (checked later against the operator's schema).
     pub params: Vec<(Name, Spanned<RonValue>)>,
     /// Span of the `params` value, or of the node when absent.
     pub params_span: Span,
     /// Span of the node's value.
     pub span: Span,
+}
+
+/// What a node input is wired to.
+#[derive(Debug, Clone)]
+pub enum InputRef {
+    /// One reference: `"node.port"` or `"node.port[i]"`.
+    One(Name),
+    /// A list literal `["a.port", "b.port[0]"]`: a list built from the referenced values.
+    List {
+        /// The element references, in order.
+        items: Vec<Name>,
+        /// Span of the whole list.
+        span: Span,
+    },
+}
+
+impl InputRef {
+    /// Span of the whole value.
+    pub fn span(&self) -> Span {
+        match self {
+            InputRef::One(r) => r.span,
+            InputRef::List { span, .. } => *span,
+        }
+    }
+
+    /// Every reference, in order.
+    pub fn references(&self) -> &[Name] {
+        match self {
+            InputRef::One(r) => std::slice::from_ref(r),
+            InputRef::List { items, .. } => items,
+        }
+    }
+
+    /// The value as written (`"a.x"` or `["a.x", "b.y"]`), as one spanned text for messages.
+    pub fn as_text(&self) -> Name {
+        match self {
+            InputRef::One(r) => r.clone(),
+            InputRef::List { items, span } => Spanned {
+                value: format!(
+                    "[{}]",
+                    items
+                        .iter()
+                        .map(|i| format!("\"{}\"", i.value))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+                span: *span,
+            },
+        }
+    }
 }
 
 const GRAPH_FIELDS: [&str; 6] = [
@@ -314,6 +369,83 @@ fn string_map(
     out
 }
 
+/// A node's `inputs`: `{ "port": "node.port" }` or `{ "port": ["a.port", "b.port"] }`.
+fn input_map(
+    source: &Arc<SourceFile>,
+    v: &Spanned<RonValue>,
+    diags: &mut Diagnostics,
+) -> Vec<(Name, InputRef)> {
+    let what = "`inputs`";
+    let entries = match &v.value {
+        RonValue::Map(entries) => entries,
+        RonValue::Unit => return Vec::new(),
+        other => {
+            diags.push(
+                Diagnostic::at(
+                    Code::Shape,
+                    source,
+                    head_span(v),
+                    format!(
+                        "{what} must be a map `{{ \"port\": \"node.port\" }}`, found {}",
+                        a_kind(other)
+                    ),
+                )
+                .label("expected a map"),
+            );
+            return Vec::new();
+        }
+    };
+    let mut out: Vec<(Name, InputRef)> = Vec::new();
+    for (k, val) in entries {
+        let Some(key) = string(source, k, &format!("a key of {what}"), diags) else {
+            continue;
+        };
+        let value = match &val.value {
+            RonValue::List(items) => {
+                let mut refs = Vec::with_capacity(items.len());
+                let mut ok = true;
+                for item in items {
+                    match string(
+                        source,
+                        item,
+                        &format!("an element of a list in {what}"),
+                        diags,
+                    ) {
+                        Some(r) => refs.push(r),
+                        None => ok = false,
+                    }
+                }
+                if !ok {
+                    continue;
+                }
+                InputRef::List {
+                    items: refs,
+                    span: val.span,
+                }
+            }
+            _ => match string(source, val, &format!("a value of {what}"), diags) {
+                Some(r) => InputRef::One(r),
+                None => continue,
+            },
+        };
+        if let Some((first, _)) = out.iter().find(|(n, _)| n.value == key.value) {
+            diags.push(
+                Diagnostic::at(
+                    Code::Shape,
+                    source,
+                    key.span,
+                    format!("`{}` appears twice in {what}", key.value),
+                )
+                .label("second entry")
+                .related(first.span, "first entry"),
+            );
+            continue;
+        }
+        out.push((key, value));
+    }
+    out
+}
+
 fn nodes(
     source: &Arc<SourceFile>,
     v: &Spanned<RonValue>,
@@ -397,7 +529,7 @@ fn node(
                 saw_op = true;
                 op = string(source, value, "`op`", diags);
             }
-            "inputs" => inputs = string_map(source, value, "`inputs`", diags),
+            "inputs" => inputs = input_map(source, value, diags),
             "params" => {
                 params_span = value.span;
                 match &value.value {
@@ -446,4 +578,60 @@ fn node(
 pub fn split_reference(text: &str) -> Option<(&str, &str)> {
     let (node, port) = text.rsplit_once('.')?;
     (!node.is_empty() && !port.is_empty()).then_some((node, port))
+}
+
+/// A reference's element index, if any: `"node.port[2]"` → `("node.port", Some(2))`,
+/// `"node.port[-1]"` → `("node.port", Some(-1))`, `"node.port"` → `("node.port", None)`. A `[` or
+/// `]` that does not form one trailing `[integer]` is an error, returned as a short explanation.
+pub fn split_index(text: &str) -> Result<(&str, Option<i64>), String> {
+    let Some(open) = text.find('[') else {
+        if text.contains(']') {
+            return Err("unbalanced `]`".into());
+        }
+        return Ok((text, None));
+    };
+    let (base, rest) = text.split_at(open);
+    let Some(inner) = rest[1..].strip_suffix(']') else {
+        return Err(if rest.contains(']') {
+            "nothing may follow the index `[...]`".into()
+        } else {
+            "missing `]` after the index".into()
+        });
+    };
+    if inner.contains('[') || inner.contains(']') {
+        return Err("only one index `[i]` is allowed".into());
+    }
+    let digits = inner.trim();
+    if digits.is_empty() {
+        return Err("empty index `[]`".into());
+    }
+    match digits.parse::<i64>() {
+        Ok(i) => Ok((base, Some(i))),
+        Err(_) => Err(format!("index `{inner}` is not an integer")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn indices_split_off_references() {
+        assert_eq!(split_index("a.b"), Ok(("a.b", None)));
+        assert_eq!(split_index("a.b[0]"), Ok(("a.b", Some(0))));
+        assert_eq!(split_index("a.b[-1]"), Ok(("a.b", Some(-1))));
+        assert_eq!(split_index("a.b[ 7 ]"), Ok(("a.b", Some(7))));
+        for bad in [
+            "a.b[x]",
+            "a.b[1",
+            "a.b[]",
+            "a.b]",
+            "a.b[1]x",
+            "a.b[0][1]",
+            "a.b[1.5]",
+            "a.b[99999999999999999999]",
+        ] {
+            assert!(split_index(bad).is_err(), "{bad}");
+        }
+    }
 }

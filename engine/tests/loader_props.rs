@@ -18,9 +18,36 @@ const VALID: &str = r#"Graph(
         "r": (op: "t.repeat", inputs: { "x": "b.sum" }, params: (count: 3)),
         "m": (op: "t.add", inputs: { "a": "r.items" }),
         "c": (op: "t.collect", inputs: { "items": "m.sum" }),
+        "l": (op: "t.collect", inputs: { "items": ["a.value", "b.sum", "r.items[-1]"] }),
+        "p": (op: "t.add", inputs: { "a": ["a.value", "r.items[1]"], "b": "r.items[0]" }),
     },
-    outputs: { "total": "c.total", "each": "m.sum" },
+    outputs: { "total": "c.total", "each": "m.sum", "first": "r.items[0]", "list": "l.total" },
 )"#;
+
+/// Reference texts: valid, indexed, malformed, odd characters.
+fn reference() -> impl Strategy<Value = String> {
+    prop_oneof![
+        Just("a.value".to_string()),
+        Just("r.items".to_string()),
+        "[a-z]{1,2}\\.[a-z]{1,6}",
+        ("(a|r|m|zz)\\.(value|items|sum|x)", any::<i64>()).prop_map(|(r, i)| format!("{r}[{i}]")),
+        ("(a|r)\\.(value|items)", "[\\[\\]0-9x\\- ]{0,6}")
+            .prop_map(|(r, tail)| format!("{r}{tail}")),
+        "\\PC{0,12}",
+    ]
+}
+
+/// RON text for an input: one quoted reference or a list literal of them.
+fn input_text() -> impl Strategy<Value = String> {
+    let quote = |r: String| format!("{r:?}");
+    prop_oneof![
+        reference().prop_map(quote),
+        prop::collection::vec(reference(), 0..4).prop_map(move |items| {
+            let items: Vec<String> = items.into_iter().map(quote).collect();
+            format!("[{}]", items.join(", "))
+        }),
+    ]
+}
 
 fn check_diagnostics(text: &str) {
     let (reg, _) = registry();
@@ -70,6 +97,24 @@ proptest! {
                 format!("{}{}", &VALID[..start], &VALID[end..])
             };
             check_diagnostics(&text);
+        }
+    }
+
+    #[test]
+    fn generated_references_never_panic(
+        port in "(a|b|items|x)",
+        op in "(t\\.add|t\\.collect|t\\.repeat|graph)",
+        input in input_text(),
+        output in reference(),
+    ) {
+        let text = format!(
+            "Graph(nodes: {{ \"a\": (op: \"t.source\"), \"r\": (op: \"t.repeat\", inputs: {{ \"x\": \"a.value\" }}), \"n\": (op: {op:?}, inputs: {{ {port:?}: {input} }}) }}, outputs: {{ \"o\": {output:?}, \"n\": \"n.sum\" }})"
+        );
+        check_diagnostics(&text);
+        // Whatever loads also runs without panicking.
+        let (reg, _) = registry();
+        if let Ok(graph) = load_source(&reg, &common::source("p.ron", &text), &[]) {
+            ocellus_engine::run(&graph, &ocellus_engine::RunOptions { threads: 1, ..Default::default() }).unwrap();
         }
     }
 
