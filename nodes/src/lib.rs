@@ -8,6 +8,8 @@ pub mod capture;
 pub mod detect;
 pub mod filter;
 pub mod io;
+/// The `match` family (descriptor and patch matching); `match` is a keyword, hence the name.
+pub mod matching;
 pub mod segment;
 
 use ocellus_engine::op::{Registry, RegistryError};
@@ -93,6 +95,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<segment::region_grow::RegionGrow>()?;
     registry.register::<segment::watershed::Watershed>()?;
     registry.register::<segment::kmeans::Kmeans>()?;
+    registry.register::<matching::brute_force::BruteForce>()?;
     Ok(())
 }
 
