@@ -96,6 +96,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<segment::watershed::Watershed>()?;
     registry.register::<segment::kmeans::Kmeans>()?;
     registry.register::<matching::brute_force::BruteForce>()?;
+    registry.register::<matching::approximate::Approximate>()?;
     Ok(())
 }
 
