@@ -97,6 +97,9 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<segment::kmeans::Kmeans>()?;
     registry.register::<matching::brute_force::BruteForce>()?;
     registry.register::<matching::approximate::Approximate>()?;
+    registry.register::<matching::patch::PatchMatch>()?;
+    registry.register::<matching::draw::DrawMatches>()?;
+    registry.register::<analyze::match_accuracy::MatchAccuracy>()?;
     Ok(())
 }
 

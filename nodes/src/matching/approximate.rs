@@ -246,7 +246,10 @@ enum Node {
         right: u32,
     },
     /// Clustering node: children `first..first + count` of `clusters`.
-    Clusters { first: u32, count: u32 },
+    Clusters {
+        first: u32,
+        count: u32,
+    },
 }
 
 /// A child of a clustering node: centre row, radius (largest member distance), node id.
@@ -451,7 +454,10 @@ fn build_kd(data: &[f32], dim: usize, leaf_size: usize, rng: &mut Rng) -> Tree {
         mean.fill(0.0);
         var.fill(0.0);
         for &p in sample {
-            for (m, &x) in mean.iter_mut().zip(&data[p as usize * dim..(p as usize + 1) * dim]) {
+            for (m, &x) in mean
+                .iter_mut()
+                .zip(&data[p as usize * dim..(p as usize + 1) * dim])
+            {
                 *m += f64::from(x);
             }
         }
