@@ -661,15 +661,13 @@ fn approx_block(
     for (p, pair) in t.chunks_exact(2 * dp).enumerate() {
         let (r0, r1) = pair.split_at(dp);
         let mut acc = [[0.0f32; 8]; 8];
-        for (k, ((((a0, a1), a2), a3), (b0, b1))) in q0
+        for ((((a0, a1), a2), a3), (b0, b1)) in q0
             .chunks_exact(8)
             .zip(q1.chunks_exact(8))
             .zip(q2.chunks_exact(8))
             .zip(q3.chunks_exact(8))
             .zip(r0.chunks_exact(8).zip(r1.chunks_exact(8)))
-            .enumerate()
         {
-            let _ = k;
             for l in 0..8 {
                 acc[0][l] += a0[l] * b0[l];
                 acc[1][l] += a0[l] * b1[l];
