@@ -70,7 +70,7 @@ fn brute_force(c: &mut Criterion) {
     group.finish();
 }
 
-/// Noisy copies (±6) of the first `n` rows of `t`, so every query has a true match.
+/// Noisy copies (±15) of the first `n` rows of `t`, so every query has a true match.
 fn noisy_copies(t: &Descriptors, n: usize, seed: u64) -> Descriptors {
     let Descriptors::Float { dim, data } = t else {
         panic!("float descriptors expected")
@@ -80,7 +80,7 @@ fn noisy_copies(t: &Descriptors, n: usize, seed: u64) -> Descriptors {
         dim: *dim,
         data: data[..n * dim]
             .iter()
-            .map(|&v| v + (next() % 13) as f32 - 6.0)
+            .map(|&v| v + (next() % 31) as f32 - 15.0)
             .collect(),
     }
 }
