@@ -60,8 +60,8 @@ params! {
         /// Distance: "auto" (L2 for float, Hamming for binary), "l2", "l2_squared" or
         /// "hamming". Default "auto".
         norm: Norm = Norm::Auto,
-        /// Largest number of points in a leaf (binary trees: at least `branching`). Default 8.
-        leaf_size: u32 = 8 => [min = 1, max = 10000],
+        /// Largest number of points in a leaf (binary trees: at least `branching`). Default 4.
+        leaf_size: u32 = 4 => [min = 1, max = 10000],
         /// Children per node of the binary clustering trees. Default 16.
         branching: u32 = 16 => [min = 2, max = 1024],
     }
@@ -91,7 +91,7 @@ impl Default for AnnOptions {
             checks: 64,
             ratio: 0.8,
             seed: 0,
-            leaf_size: 8,
+            leaf_size: 4,
             branching: 16,
         }
     }
