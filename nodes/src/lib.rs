@@ -9,6 +9,8 @@ pub mod describe;
 pub mod detect;
 pub mod filter;
 pub mod io;
+/// The `match` family (descriptor and patch matching); `match` is a keyword, hence the name.
+pub mod matching;
 pub mod segment;
 
 use ocellus_engine::op::{Registry, RegistryError};
@@ -99,6 +101,11 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<segment::region_grow::RegionGrow>()?;
     registry.register::<segment::watershed::Watershed>()?;
     registry.register::<segment::kmeans::Kmeans>()?;
+    registry.register::<matching::brute_force::BruteForce>()?;
+    registry.register::<matching::approximate::Approximate>()?;
+    registry.register::<matching::patch::PatchMatch>()?;
+    registry.register::<matching::draw::DrawMatches>()?;
+    registry.register::<analyze::match_accuracy::MatchAccuracy>()?;
     Ok(())
 }
 

@@ -2,5 +2,6 @@
 
 pub mod evaluate;
 pub mod histogram;
+pub mod match_accuracy;
 pub mod quality;
 pub mod stats;
