@@ -10,6 +10,7 @@ use common::{example_graphs, files_below, ocellus, root, stderr, temp_dir};
 /// Graphs with a snapshot test below; a new graph must be added here.
 const SNAPSHOTTED: &[&str] = &[
     "edges.ron",
+    "features.ron",
     "filters.ron",
     "lines.ron",
     "segment.ron",
@@ -38,6 +39,11 @@ fn check_graph(graph: &str) {
 #[test]
 fn edges() {
     check_graph("edges.ron");
+}
+
+#[test]
+fn features() {
+    check_graph("features.ron");
 }
 
 #[test]

@@ -68,6 +68,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<filter::warp::WarpAffine>()?;
     registry.register::<filter::warp::WarpPerspective>()?;
     registry.register::<describe::sift::Sift>()?;
+    registry.register::<describe::features::Features>()?;
     registry.register::<detect::canny::Canny>()?;
     registry.register::<detect::mser::Mser>()?;
     registry.register::<detect::qr::QrFinder>()?;
