@@ -9,6 +9,7 @@ pub mod detect;
 pub mod filter;
 pub mod io;
 pub mod segment;
+pub mod video;
 
 use ocellus_engine::op::{Registry, RegistryError};
 
@@ -74,6 +75,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<detect::hough::HoughLines>()?;
     registry.register::<detect::hough::HoughSegments>()?;
     registry.register::<detect::template::TemplateMatch>()?;
+    registry.register::<video::klt::TrackKlt>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<analyze::evaluate::Evaluate>()?;
