@@ -398,8 +398,7 @@ fn sample_window(plane: &Plane, cx: f32, cy: f32, window: usize, dst: &mut [f32]
     let (pw, ph) = (plane.width as i64, plane.height as i64);
     let x0 = x0f as i64;
     let y0 = y0f as i64;
-    let interior =
-        x0 >= 0 && y0 >= 0 && x0 + window as i64 + 1 <= pw && y0 + window as i64 + 1 <= ph;
+    let interior = x0 >= 0 && y0 >= 0 && x0 + (window as i64) < pw && y0 + (window as i64) < ph;
     if interior {
         let stride = plane.width;
         for (r, row) in dst.chunks_exact_mut(window).enumerate() {
@@ -463,7 +462,8 @@ fn track_one(
         let det = a11 * a22 - a12 * a12;
         let min_eig = (a11 + a22 - ((a11 - a22) * (a11 - a22) + 4.0 * a12 * a12).sqrt())
             / (2.0 * area * 1024.0);
-        if !(min_eig >= s.min_eigen) || !(det > f32::EPSILON * (a11 + a22).max(1.0)) {
+        let weak = min_eig.is_nan() || min_eig < s.min_eigen;
+        if weak || det.is_nan() || det <= f32::EPSILON * (a11 + a22).max(1.0) {
             if li == 0 {
                 return None;
             }
