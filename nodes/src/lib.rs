@@ -76,6 +76,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<detect::hough::HoughSegments>()?;
     registry.register::<detect::template::TemplateMatch>()?;
     registry.register::<video::klt::TrackKlt>()?;
+    registry.register::<video::block_match::BlockMatch>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<analyze::evaluate::Evaluate>()?;
