@@ -427,6 +427,60 @@ fn sample_window(plane: &Plane, cx: f32, cy: f32, window: usize, dst: &mut [f32]
     }
 }
 
+/// Lanes of the fixed-order partial sums in [`dot3`].
+const LANES: usize = 8;
+
+/// Window sums in a fixed order with `LANES` independent partial sums (so they vectorize):
+/// without `diff`, `[Σ gx², Σ gx·gy, Σ gy²]`; with `diff = (i, j)`, `[Σ (i − j)·gx,
+/// Σ (i − j)·gy, 0]`.
+#[inline]
+fn dot3(gx: &[f32], gy: &[f32], diff: Option<(&[f32], &[f32])>) -> [f32; 3] {
+    let mut s = [[0.0f32; LANES]; 3];
+    let n = gx.len().min(gy.len());
+    let whole = n - n % LANES;
+    match diff {
+        None => {
+            for (x, y) in gx[..whole]
+                .chunks_exact(LANES)
+                .zip(gy[..whole].chunks_exact(LANES))
+            {
+                for l in 0..LANES {
+                    s[0][l] += x[l] * x[l];
+                    s[1][l] += x[l] * y[l];
+                    s[2][l] += y[l] * y[l];
+                }
+            }
+            for k in whole..n {
+                s[0][0] += gx[k] * gx[k];
+                s[1][0] += gx[k] * gy[k];
+                s[2][0] += gy[k] * gy[k];
+            }
+        }
+        Some((i, j)) => {
+            let n = n.min(i.len()).min(j.len());
+            let whole = n - n % LANES;
+            for (((x, y), a), b) in gx[..whole]
+                .chunks_exact(LANES)
+                .zip(gy[..whole].chunks_exact(LANES))
+                .zip(i[..whole].chunks_exact(LANES))
+                .zip(j[..whole].chunks_exact(LANES))
+            {
+                for l in 0..LANES {
+                    let d = a[l] - b[l];
+                    s[0][l] += d * x[l];
+                    s[1][l] += d * y[l];
+                }
+            }
+            for k in whole..n {
+                let d = i[k] - j[k];
+                s[0][0] += d * gx[k];
+                s[1][0] += d * gy[k];
+            }
+        }
+    }
+    s.map(|lanes| lanes.iter().sum())
+}
+
 /// Tracks one point through the pyramid (`reverse`: from `next` to `previous`). `None` when the
 /// finest level's gradient matrix is too weak or the result is not finite.
 fn track_one(
@@ -452,13 +506,7 @@ fn track_one(
         sample_window(src, px, py, win, &mut scratch.i);
         sample_window(gx, px, py, win, &mut scratch.ix);
         sample_window(gy, px, py, win, &mut scratch.iy);
-        let (mut a11, mut a12, mut a22) = (0.0f32, 0.0f32, 0.0f32);
-        for k in 0..scratch.ix.len() {
-            let (dx, dy) = (scratch.ix[k], scratch.iy[k]);
-            a11 += dx * dx;
-            a12 += dx * dy;
-            a22 += dy * dy;
-        }
+        let [a11, a12, a22] = dot3(&scratch.ix, &scratch.iy, None);
         let det = a11 * a22 - a12 * a12;
         let min_eig = (a11 + a22 - ((a11 - a22) * (a11 - a22) + 4.0 * a12 * a12).sqrt())
             / (2.0 * area * 1024.0);
@@ -474,18 +522,7 @@ fn track_one(
         let mut v = [0.0f32; 2];
         for _ in 0..s.max_iterations {
             sample_window(dst, px + g[0] + v[0], py + g[1] + v[1], win, &mut scratch.j);
-            let (mut b1, mut b2) = (0.0f32, 0.0f32);
-            for (((&i, &j), &dx), &dy) in scratch
-                .i
-                .iter()
-                .zip(&scratch.j)
-                .zip(&scratch.ix)
-                .zip(&scratch.iy)
-            {
-                let diff = i - j;
-                b1 += diff * dx;
-                b2 += diff * dy;
-            }
+            let [b1, b2, _] = dot3(&scratch.ix, &scratch.iy, Some((&scratch.i, &scratch.j)));
             let dx = (a22 * b1 - a12 * b2) * inv;
             let dy = (a11 * b2 - a12 * b1) * inv;
             v[0] += dx;
