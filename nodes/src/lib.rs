@@ -12,6 +12,7 @@ pub mod io;
 /// The `match` family (descriptor and patch matching); `match` is a keyword, hence the name.
 pub mod matching;
 pub mod segment;
+pub mod video;
 
 use ocellus_engine::op::{Registry, RegistryError};
 
@@ -83,6 +84,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<describe::orb::Orb>()?;
     registry.register::<describe::brief::Brief>()?;
     registry.register::<describe::hog::Hog>()?;
+    registry.register::<video::klt::TrackKlt>()?;
+    registry.register::<video::block_match::BlockMatch>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<analyze::evaluate::Evaluate>()?;
