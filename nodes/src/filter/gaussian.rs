@@ -481,6 +481,37 @@ fn float_bands<T: Sample>(
     geometry: &Geometry,
     constant: T,
 ) -> Vec<T> {
+    let channels = geometry.channels;
+    let row_weights: Vec<f32> = row_kernel.iter().map(|&w| w as f32).collect();
+    let column_weights: Vec<f32> = column_kernel.iter().map(|&w| w as f32).collect();
+    let row_offsets: Vec<usize> = (0..row_kernel.len()).map(|i| i * channels).collect();
+    // Outside the columns every extended sample is the constant, so the column pass there gives
+    // the constant times the column weights, summed in the column pass's order.
+    let c = constant.to_f32();
+    let wide_constant = column_weights.iter().fold(0.0f32, |acc, &w| acc + w * c);
+    column_first_bands(
+        src,
+        geometry,
+        constant,
+        wide_constant,
+        |taps, inside| float_column(taps, &column_weights, inside),
+        |padded, line| float_row::<T>(padded, &row_offsets, &row_weights, line),
+    )
+}
+
+/// The band loop shared by both separable paths: each output row is `column` over the
+/// `ksize_y` source rows it reads (straight from the image; rows outside it are the constant)
+/// into the inside of one row of `W`, padded in place through the column border table (with
+/// `wide_constant` outside), then `row` of that padded row into the output row. Bands of
+/// output rows run in parallel; each output row depends only on its source rows.
+fn column_first_bands<T: Sample, W: Copy + Send + Sync>(
+    src: &[T],
+    geometry: &Geometry,
+    constant: T,
+    wide_constant: W,
+    column: impl Fn(&[&[T]], &mut [W]) + Sync,
+    row: impl Fn(&[W], &mut [T]) + Sync,
+) -> Vec<T> {
     // Zeros come from the allocator without a memset; every sample is overwritten.
     let mut dst = ocellus_engine::buffer::zeroed::<T>(src.len());
     let Geometry {
@@ -494,17 +525,10 @@ fn float_bands<T: Sample>(
     if n == 0 || src.is_empty() {
         return dst;
     }
-    let row_weights: Vec<f32> = row_kernel.iter().map(|&w| w as f32).collect();
-    let column_weights: Vec<f32> = column_kernel.iter().map(|&w| w as f32).collect();
-    let row_offsets: Vec<usize> = (0..row_kernel.len()).map(|i| i * channels).collect();
     let taps_y = rows.before() + 1 + rows.after();
     let band_rows = BAND_ROWS.max(4 * taps_y);
     let before_x = columns.before();
     let padded_len = columns.padded_len() * channels;
-    // Outside the columns every extended sample is the constant, so the column pass there gives
-    // the constant times the column weights, summed in the column pass's order.
-    let c = constant.to_f32();
-    let wide_constant = column_weights.iter().fold(0.0f32, |acc, &w| acc + w * c);
     let constant_row = vec![constant; n];
     dst.par_chunks_mut(band_rows * n)
         .enumerate()
@@ -524,9 +548,9 @@ fn float_bands<T: Sample>(
                 else {
                     return;
                 };
-                float_column(&taps, &column_weights, inside);
+                column(&taps, inside);
                 pad_in_place(columns, channels, wide_constant, &mut padded);
-                float_row::<T>(&padded, &row_offsets, &row_weights, line);
+                row(&padded, line);
             }
         });
     dst
@@ -901,53 +925,22 @@ fn symmetric_blocked<O>(
 /// output. Both temporaries stay in L1 cache and every source row is read from cache by the
 /// `ksize_y` output rows that need it.
 fn fixed_u8_bands(fixed: &FixedU8, src: &[u8], geometry: &Geometry, constant: u8) -> Vec<u8> {
-    let mut dst = ocellus_engine::buffer::zeroed::<u8>(src.len());
-    let Geometry {
-        width,
-        channels,
-        columns,
-        rows,
-    } = geometry;
-    let (width, channels) = (*width, *channels);
-    let n = width * channels;
-    if n == 0 || src.is_empty() {
-        return dst;
-    }
-    let taps_y = rows.before() + 1 + rows.after();
-    let before_x = columns.before();
-    let padded_len = columns.padded_len() * channels;
-    let wide_constant = u16::from(constant) << 8;
-    let constant_row = vec![constant; n];
-    dst.par_chunks_mut(BAND_ROWS * n)
-        .enumerate()
-        .for_each(|(band, out)| {
-            let y0 = band * BAND_ROWS;
-            let mut padded = vec![wide_constant; padded_len];
-            let mut taps: Vec<&[u8]> = vec![&[]; taps_y];
-            for (i, line) in out.chunks_exact_mut(n).enumerate() {
-                // Output row y reads extended rows y .. y + taps_y − 1.
-                for (j, tap) in taps.iter_mut().enumerate() {
-                    *tap = rows
-                        .source(y0 + i + j)
-                        .and_then(|r| src.get(r * n..(r + 1) * n))
-                        .unwrap_or(&constant_row);
-                }
-                let Some(inside) = padded.get_mut(before_x * channels..before_x * channels + n)
-                else {
-                    return;
-                };
-                column_pass_u8(&taps, &fixed.column, fixed.column_bias_first, inside);
-                pad_in_place(columns, channels, wide_constant, &mut padded);
-                row_pass_u8(
-                    &padded,
-                    &fixed.row_offsets,
-                    &fixed.row,
-                    fixed.row_bias_second,
-                    line,
-                );
-            }
-        });
-    dst
+    column_first_bands(
+        src,
+        geometry,
+        constant,
+        u16::from(constant) << 8,
+        |taps, inside| column_pass_u8(taps, &fixed.column, fixed.column_bias_first, inside),
+        |padded, line| {
+            row_pass_u8(
+                padded,
+                &fixed.row_offsets,
+                &fixed.row,
+                fixed.row_bias_second,
+                line,
+            )
+        },
+    )
 }
 
 /// The column pass of [`fixed_u8_bands`]: AVX2 intrinsics for whole vectors where the CPU has
