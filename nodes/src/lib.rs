@@ -8,6 +8,7 @@ pub mod capture;
 pub mod describe;
 pub mod detect;
 pub mod filter;
+pub mod geometry;
 pub mod io;
 /// The `match` family (descriptor and patch matching); `match` is a keyword, hence the name.
 pub mod matching;

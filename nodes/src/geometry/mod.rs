@@ -1,0 +1,7 @@
+//! Geometry: robust estimation, minimal solvers, multi-view relations, triangulation, cameras and
+//! calibration.
+//!
+//! Every estimator implements [`robust::Estimator`] (`MIN_SAMPLES`, `fit`, `residuals`), the way
+//! COLMAP's estimators do, so one RANSAC family (RANSAC, MSAC, LO-RANSAC, PROSAC) drives them all.
+
+pub mod robust;
