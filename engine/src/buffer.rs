@@ -24,6 +24,49 @@ pub fn zeroed<T: Clone + Default>(len: usize) -> Vec<T> {
     buffer
 }
 
+/// `len` samples computed band by band in parallel: `fill(band_index, band)` receives each
+/// `band_len`-sample chunk in order of index (the last may be shorter) and must set every sample.
+///
+/// Each band is zeroed just before `fill` sees it, while it is in cache, instead of zeroing the
+/// whole buffer up front on one thread: a `calloc` of a block the allocator reuses is a
+/// `memset` as long as a light kernel (a 2×2 mean reads 4 bytes per byte it writes). Large
+/// buffers are advised to use huge pages, as in [`zeroed`]. The result depends only on `fill`,
+/// never on the thread count.
+pub fn par_filled<T, F>(len: usize, band_len: usize, fill: F) -> Vec<T>
+where
+    T: Copy + Default + Send + Sync,
+    F: Fn(usize, &mut [T]) + Sync + Send,
+{
+    use rayon::prelude::*;
+    let mut buffer: Vec<T> = Vec::with_capacity(len);
+    let spare = &mut buffer.spare_capacity_mut()[..len];
+    advise_huge_pages(spare);
+    spare
+        .par_chunks_mut(band_len.max(1))
+        .enumerate()
+        .for_each(|(band, chunk)| {
+            chunk.fill(std::mem::MaybeUninit::new(T::default()));
+            fill(band, assume_init_mut(chunk));
+        });
+    set_len_after_fill(&mut buffer, len);
+    buffer
+}
+
+#[allow(unsafe_code)] // a cast of initialised memory; see the SAFETY comment
+fn assume_init_mut<T>(chunk: &mut [std::mem::MaybeUninit<T>]) -> &mut [T] {
+    // SAFETY: only called on chunks whose every element was written just before (`fill` with
+    // `MaybeUninit::new`), and `MaybeUninit<T>` has the layout of `T`.
+    unsafe { &mut *(chunk as *mut [std::mem::MaybeUninit<T>] as *mut [T]) }
+}
+
+#[allow(unsafe_code)] // see the SAFETY comment
+fn set_len_after_fill<T>(buffer: &mut Vec<T>, len: usize) {
+    // SAFETY: `par_filled` initialised the first `len` elements of the spare capacity (the
+    // parallel loop covers all of `spare[..len]` and writes every chunk before returning; a panic
+    // in `fill` unwinds past this call, leaving the vector empty).
+    unsafe { buffer.set_len(len) }
+}
+
 /// Advises the kernel to back the whole 2 MiB pages inside `buffer` with huge pages (Linux;
 /// a no-op elsewhere and below [`HUGE_PAGE_MIN_BYTES`]).
 pub fn advise_huge_pages<T>(buffer: &[T]) {
@@ -56,6 +99,41 @@ fn advise(address: usize, length: usize) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn par_filled_gives_what_fill_writes_for_any_thread_count() {
+        for (len, band) in [
+            (0usize, 4usize),
+            (1, 4),
+            (1000, 7),
+            (HUGE_PAGE_MIN_BYTES / 2 + 3, 4096),
+        ] {
+            let expected: Vec<u16> = (0..len).map(|i| (i % 65_521) as u16).collect();
+            for threads in [1, 2, 3] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let got = pool.install(|| {
+                    par_filled::<u16, _>(len, band, |b, chunk| {
+                        for (k, x) in chunk.iter_mut().enumerate() {
+                            *x = ((b * band + k) % 65_521) as u16;
+                        }
+                    })
+                });
+                assert_eq!(got, expected, "len {len} band {band} threads {threads}");
+            }
+        }
+    }
+
+    #[test]
+    fn par_filled_bands_start_zeroed() {
+        let v: Vec<f32> = par_filled(100, 9, |b, chunk| {
+            assert!(chunk.iter().all(|&x| x == 0.0));
+            assert_eq!(chunk.len(), if b == 11 { 1 } else { 9 });
+        });
+        assert_eq!(v, vec![0.0; 100]);
+    }
 
     #[test]
     fn zeroed_buffers_are_zero_and_writable() {

@@ -757,24 +757,21 @@ impl Integer for u16 {
 /// 2×2 block means of integer samples, `(a + b + c + d + 2) ≫ 2`.
 fn half_u8_like<T: Integer>(src: &[T], g: &Geometry) -> Vec<T> {
     let (c, n, sn) = (g.c, g.dw * g.c, g.sw * g.c);
-    let mut dst = ocellus_engine::buffer::zeroed::<T>(n * g.dh);
-    dst.par_chunks_mut(n * BAND_ROWS)
-        .enumerate()
-        .for_each(|(band, out)| {
-            for (i, line) in out.chunks_exact_mut(n).enumerate() {
-                let sy = 2 * (band * BAND_ROWS + i);
-                let r0 = &src[sy * sn..sy * sn + 2 * n];
-                let r1 = &src[(sy + 1) * sn..(sy + 1) * sn + 2 * n];
-                let done = T::half_simd(c, r0, r1, line);
-                if let (Some(r0), Some(r1), Some(rest)) =
-                    (r0.get(2 * done..), r1.get(2 * done..), line.get_mut(done..))
-                    && !rest.is_empty()
-                {
-                    half_row_any(c, r0, r1, rest);
-                }
+    // Light kernel: zero each band in cache rather than the whole output up front.
+    ocellus_engine::buffer::par_filled::<T, _>(n * g.dh, n * BAND_ROWS, |band, out| {
+        for (i, line) in out.chunks_exact_mut(n).enumerate() {
+            let sy = 2 * (band * BAND_ROWS + i);
+            let r0 = &src[sy * sn..sy * sn + 2 * n];
+            let r1 = &src[(sy + 1) * sn..(sy + 1) * sn + 2 * n];
+            let done = T::half_simd(c, r0, r1, line);
+            if let (Some(r0), Some(r1), Some(rest)) =
+                (r0.get(2 * done..), r1.get(2 * done..), line.get_mut(done..))
+                && !rest.is_empty()
+            {
+                half_row_any(c, r0, r1, rest);
             }
-        });
-    dst
+        }
+    })
 }
 
 /// [`half_row`] for any channel count, compiled for several instruction sets.
