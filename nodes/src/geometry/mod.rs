@@ -5,3 +5,10 @@
 //! COLMAP's estimators do, so one RANSAC family (RANSAC, MSAC, LO-RANSAC, PROSAC) drives them all.
 
 pub mod robust;
+pub mod homography;
+pub mod lm;
+pub mod ransac;
+pub mod fundamental;
+pub mod two_view;
+pub mod shapes;
+pub mod transforms;

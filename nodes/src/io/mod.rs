@@ -2,3 +2,4 @@
 
 pub mod read_image;
 pub mod write_image;
+pub mod read_correspondences;
