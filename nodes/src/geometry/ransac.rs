@@ -437,7 +437,7 @@ where
     let inner = (7 * s).min(inliers.len() / 2).max(s + 1).min(inliers.len());
     let mut indices = Vec::with_capacity(inner);
     let mut subset = Vec::with_capacity(inner);
-    let mut consider = |candidate: E::Model,
+    let consider = |candidate: E::Model,
                         residuals: &mut [f64],
                         best: &mut Option<(E::Model, f64, usize)>,
                         best_cost: &mut f64| {
@@ -511,9 +511,9 @@ mod tests {
 
     #[test]
     fn trial_count_matches_hand_values() {
-        // log(0.01) / log(1 − 0.5⁴) = 71.3 → 72; log(0.001)/log(1 − 0.5⁸) = 1765.3 → 1766.
+        // log(0.01) / log(1 − 0.5⁴) = 71.36 → 72; log(0.001) / log(1 − 0.5⁸) = 1764.93 → 1765.
         assert_eq!(required_trials(0.5, 4, 0.99, 0, 100_000), 72);
-        assert_eq!(required_trials(0.5, 8, 0.999, 0, 100_000), 1766);
+        assert_eq!(required_trials(0.5, 8, 0.999, 0, 100_000), 1765);
         // w = 0.9, s = 2, p = 0.99: log(0.01)/log(0.19) = 2.77 → 3.
         assert_eq!(required_trials(0.9, 2, 0.99, 0, 100), 3);
         // Clamps.

@@ -381,7 +381,8 @@ mod tests {
                     [x, y, (2.0 * x + y + 3.0 * scale) / 2.0]
                 })
                 .collect();
-            for m in [PlaneEstimator.fit(&pts[..3]), PlaneEstimator.fit(&pts)] {
+            let triple = [pts[0], pts[1], pts[5]];
+            for m in [PlaneEstimator.fit(&triple), PlaneEstimator.fit(&pts)] {
                 let m = m[0];
                 let s = m.normal[0].signum() / 3.0;
                 assert!((m.normal[0] - 2.0 * s).abs() < 1e-12);
