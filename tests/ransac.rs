@@ -58,9 +58,21 @@ fn apply_h(p: [f64; 2]) -> [f64; 2] {
 
 fn rotation() -> [[f64; 3]; 3] {
     let (a, b, c) = (ANGLES[0], ANGLES[1], ANGLES[2]);
-    let rx = [[1.0, 0.0, 0.0], [0.0, a.cos(), -a.sin()], [0.0, a.sin(), a.cos()]];
-    let ry = [[b.cos(), 0.0, b.sin()], [0.0, 1.0, 0.0], [-b.sin(), 0.0, b.cos()]];
-    let rz = [[c.cos(), -c.sin(), 0.0], [c.sin(), c.cos(), 0.0], [0.0, 0.0, 1.0]];
+    let rx = [
+        [1.0, 0.0, 0.0],
+        [0.0, a.cos(), -a.sin()],
+        [0.0, a.sin(), a.cos()],
+    ];
+    let ry = [
+        [b.cos(), 0.0, b.sin()],
+        [0.0, 1.0, 0.0],
+        [-b.sin(), 0.0, b.cos()],
+    ];
+    let rz = [
+        [c.cos(), -c.sin(), 0.0],
+        [c.sin(), c.cos(), 0.0],
+        [0.0, 0.0, 1.0],
+    ];
     mul(&mul(&rz, &ry), &rx)
 }
 
@@ -87,7 +99,11 @@ fn transpose(a: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
 /// The true F of the fixture (x_rightᵀ F x_left = 0): K⁻ᵀ [t]× R K⁻¹.
 fn true_f() -> [[f64; 3]; 3] {
     let [f, cx, cy] = K;
-    let k_inv = [[1.0 / f, 0.0, -cx / f], [0.0, 1.0 / f, -cy / f], [0.0, 0.0, 1.0]];
+    let k_inv = [
+        [1.0 / f, 0.0, -cx / f],
+        [0.0, 1.0 / f, -cy / f],
+        [0.0, 0.0, 1.0],
+    ];
     let tx = [[0.0, -T[2], T[1]], [T[2], 0.0, -T[0]], [-T[1], T[0], 0.0]];
     mul(&mul(&transpose(&k_inv), &mul(&tx, &rotation())), &k_inv)
 }
@@ -125,7 +141,11 @@ fn fundamental_fixture() -> String {
     );
     for _ in 0..300 {
         let z = 7.0 + 6.0 * (rng.uniform() - 0.5);
-        let x = [(rng.uniform() - 0.5) * z * 1.2, (rng.uniform() - 0.5) * z * 0.9, z];
+        let x = [
+            (rng.uniform() - 0.5) * z * 1.2,
+            (rng.uniform() - 0.5) * z * 0.9,
+            z,
+        ];
         let p = [f * x[0] / x[2] + cx, f * x[1] / x[2] + cy];
         let y: Vec<f64> = (0..3)
             .map(|i| (0..3).map(|k| r[i][k] * x[k]).sum::<f64>() + T[i])
@@ -134,9 +154,8 @@ fn fundamental_fixture() -> String {
         let (p, q, flag) = if rng.uniform() < 0.4 {
             (p, [640.0 * rng.uniform(), 480.0 * rng.uniform()], 0)
         } else {
-            let noisy = |v: [f64; 2], rng: &mut Rng| {
-                [v[0] + 0.3 * rng.normal(), v[1] + 0.3 * rng.normal()]
-            };
+            let noisy =
+                |v: [f64; 2], rng: &mut Rng| [v[0] + 0.3 * rng.normal(), v[1] + 0.3 * rng.normal()];
             (noisy(p, &mut rng), noisy(q, &mut rng), 1)
         };
         writeln!(

@@ -34,7 +34,9 @@ pub fn normalize_fundamental(f: &Matrix3<f64>) -> Option<Matrix3<f64>> {
     if !(norm.is_finite() && norm > 0.0) {
         return None;
     }
-    let largest = f.iter().fold(0.0f64, |a, &v| if v.abs() > a.abs() { v } else { a });
+    let largest = f
+        .iter()
+        .fold(0.0f64, |a, &v| if v.abs() > a.abs() { v } else { a });
     Some(f * (largest.signum() / norm))
 }
 
@@ -60,7 +62,9 @@ pub fn sampson_error2(f: &Matrix3<f64>, c: &Correspondence) -> f64 {
 }
 
 /// Normalized epipolar system rows and the normalizations, or `None`.
-fn normalized_system(data: &[Correspondence]) -> Option<(SMatrix<f64, 9, 9>, Matrix3<f64>, Matrix3<f64>)> {
+fn normalized_system(
+    data: &[Correspondence],
+) -> Option<(SMatrix<f64, 9, 9>, Matrix3<f64>, Matrix3<f64>)> {
     let t1 = hartley_normalization(data.iter().map(|c| &c[0]))?;
     let t2 = hartley_normalization(data.iter().map(|c| &c[1]))?;
     let mut ata = SMatrix::<f64, 9, 9>::zeros();
@@ -97,9 +101,7 @@ pub fn enforce_rank2(f: &Matrix3<f64>) -> Matrix3<f64> {
     };
     let mut s = svd.singular_values;
     // nalgebra sorts singular values in descending order.
-    let smallest = (0..3)
-        .min_by(|&a, &b| s[a].total_cmp(&s[b]))
-        .unwrap_or(2);
+    let smallest = (0..3).min_by(|&a, &b| s[a].total_cmp(&s[b])).unwrap_or(2);
     s[smallest] = 0.0;
     u * Matrix3::from_diagonal(&s) * v_t
 }
@@ -156,7 +158,9 @@ fn real_cubic_roots(a: f64, b: f64, c: f64, d: f64) -> Vec<f64> {
             let arg = (3.0 * q / (2.0 * p) * (-3.0 / p).sqrt()).clamp(-1.0, 1.0);
             let phi = arg.acos() / 3.0;
             for k in 0..3 {
-                roots.push(2.0 * r * (phi - 2.0 * std::f64::consts::PI * k as f64 / 3.0).cos() + shift);
+                roots.push(
+                    2.0 * r * (phi - 2.0 * std::f64::consts::PI * k as f64 / 3.0).cos() + shift,
+                );
             }
         }
     }
@@ -531,7 +535,10 @@ pub(crate) mod tests {
             .zip(&truth)
             .filter(|(m, t)| **m && **t)
             .count();
-        assert!(found as f64 >= 0.9 * true_inliers as f64, "{found}/{true_inliers}");
+        assert!(
+            found as f64 >= 0.9 * true_inliers as f64,
+            "{found}/{true_inliers}"
+        );
         // Mean Sampson error of the noise-free truth under the estimate.
         let clean = scene.data(1000, 6.0, 4);
         let err = |m: &Matrix3<f64>| {

@@ -31,7 +31,9 @@ pub type Correspondence = [[f64; 2]; 2];
 
 /// The similarity moving `points` to centroid 0 and mean distance √2 (Hartley 1997), or `None`
 /// if all points coincide or a coordinate is not finite.
-pub fn hartley_normalization<'a>(points: impl Iterator<Item = &'a [f64; 2]> + Clone) -> Option<Matrix3<f64>> {
+pub fn hartley_normalization<'a>(
+    points: impl Iterator<Item = &'a [f64; 2]> + Clone,
+) -> Option<Matrix3<f64>> {
     let mut n = 0usize;
     let (mut cx, mut cy) = (0.0, 0.0);
     for p in points.clone() {
@@ -44,24 +46,28 @@ pub fn hartley_normalization<'a>(points: impl Iterator<Item = &'a [f64; 2]> + Cl
     }
     cx /= n as f64;
     cy /= n as f64;
-    let mean = points
-        .map(|p| (p[0] - cx).hypot(p[1] - cy))
-        .sum::<f64>()
-        / n as f64;
+    let mean = points.map(|p| (p[0] - cx).hypot(p[1] - cy)).sum::<f64>() / n as f64;
     if !(mean.is_finite() && mean > 0.0) {
         return None;
     }
     let s = std::f64::consts::SQRT_2 / mean;
-    Some(Matrix3::new(s, 0.0, -s * cx, 0.0, s, -s * cy, 0.0, 0.0, 1.0))
+    Some(Matrix3::new(
+        s,
+        0.0,
+        -s * cx,
+        0.0,
+        s,
+        -s * cy,
+        0.0,
+        0.0,
+        1.0,
+    ))
 }
 
 /// Applies a normalization (scale + translation) to a point.
 #[inline]
 pub(crate) fn apply_similarity(t: &Matrix3<f64>, p: &[f64; 2]) -> [f64; 2] {
-    [
-        t[(0, 0)] * p[0] + t[(0, 2)],
-        t[(1, 1)] * p[1] + t[(1, 2)],
-    ]
+    [t[(0, 0)] * p[0] + t[(0, 2)], t[(1, 1)] * p[1] + t[(1, 2)]]
 }
 
 /// The inverse of a normalization matrix.
@@ -103,7 +109,11 @@ pub fn transfer(h: &Matrix3<f64>, p: &[f64; 2]) -> Option<[f64; 2]> {
 
 /// Squared symmetric transfer error of one correspondence (see the module doc).
 #[inline]
-pub fn symmetric_transfer_error2(h: &Matrix3<f64>, h_inv: &Matrix3<f64>, c: &Correspondence) -> f64 {
+pub fn symmetric_transfer_error2(
+    h: &Matrix3<f64>,
+    h_inv: &Matrix3<f64>,
+    c: &Correspondence,
+) -> f64 {
     match (transfer(h, &c[0]), transfer(h_inv, &c[1])) {
         (Some(f), Some(b)) => {
             let df = (f[0] - c[1][0]).powi(2) + (f[1] - c[1][1]).powi(2);
@@ -157,11 +167,15 @@ pub fn dlt(data: &[Correspondence]) -> Option<Matrix3<f64>> {
     }
     ata.fill_upper_triangle_with_lower_triangle();
     let eigen = SymmetricEigen::new(ata);
-    let (k, _) = eigen
-        .eigenvalues
-        .iter()
-        .enumerate()
-        .fold((0, f64::INFINITY), |(bk, bv), (k, &v)| if v < bv { (k, v) } else { (bk, bv) });
+    let (k, _) =
+        eigen
+            .eigenvalues
+            .iter()
+            .enumerate()
+            .fold(
+                (0, f64::INFINITY),
+                |(bk, bv), (k, &v)| if v < bv { (k, v) } else { (bk, bv) },
+            );
     let h = eigen.eigenvectors.column(k);
     let hn = Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8]);
     let out = inverse_similarity(&t2) * hn * t1;
@@ -275,7 +289,9 @@ impl Problem for HomographyProblem<'_> {
     }
     fn residuals(&self, x: &[f64], r: &mut [f64]) {
         let h = self.matrix(x);
-        let inverse = h.try_inverse().unwrap_or_else(|| Matrix3::from_element(f64::NAN));
+        let inverse = h
+            .try_inverse()
+            .unwrap_or_else(|| Matrix3::from_element(f64::NAN));
         let k = std::f64::consts::FRAC_1_SQRT_2;
         for (c, out) in self.data.iter().zip(r.chunks_exact_mut(4)) {
             let f = transfer(&h, &c[0]).unwrap_or([f64::NAN; 2]);
@@ -369,10 +385,7 @@ pub(crate) mod tests {
         let mut rng = SplitMix64::new(seed);
         (0..n)
             .map(|_| {
-                let p = [
-                    640.0 * rng.uniform() * scale,
-                    480.0 * rng.uniform() * scale,
-                ];
+                let p = [640.0 * rng.uniform() * scale, 480.0 * rng.uniform() * scale];
                 [p, transfer(&hs, &p).unwrap()]
             })
             .collect()
@@ -476,7 +489,10 @@ pub(crate) mod tests {
                 .zip(&truth)
                 .filter(|(m, t)| **m && **t)
                 .count();
-            assert!(found + 2 >= true_inliers, "{method:?}: {found}/{true_inliers}");
+            assert!(
+                found + 2 >= true_inliers,
+                "{method:?}: {found}/{true_inliers}"
+            );
             let corner_error = [[0.0, 0.0], [640.0, 0.0], [0.0, 480.0], [640.0, 480.0]]
                 .iter()
                 .map(|p| {

@@ -438,9 +438,9 @@ where
     let mut indices = Vec::with_capacity(inner);
     let mut subset = Vec::with_capacity(inner);
     let consider = |candidate: E::Model,
-                        residuals: &mut [f64],
-                        best: &mut Option<(E::Model, f64, usize)>,
-                        best_cost: &mut f64| {
+                    residuals: &mut [f64],
+                    best: &mut Option<(E::Model, f64, usize)>,
+                    best_cost: &mut f64| {
         estimator.residuals(&candidate, data, residuals);
         let (c, k) = score(Method::Msac, residuals, t2);
         if c < *best_cost {

@@ -325,7 +325,11 @@ mod tests {
         assert!((m.normal[1] / m.normal[0] + 2.0).abs() < 1e-2, "{m:?}");
         assert!(r.num_inliers >= 40);
         assert!(matches!(
-            estimate(&LineEstimator, &[[1.0, 1.0], [1.0, 1.0]], &RobustOptions::default()),
+            estimate(
+                &LineEstimator,
+                &[[1.0, 1.0], [1.0, 1.0]],
+                &RobustOptions::default()
+            ),
             Err(RobustError::Degenerate)
         ));
     }
@@ -349,7 +353,11 @@ mod tests {
                 assert!((m.radius - r).abs() < 1e-8 * scale);
             }
         }
-        assert!(CircleEstimator.fit(&[[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]]).is_empty());
+        assert!(
+            CircleEstimator
+                .fit(&[[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]])
+                .is_empty()
+        );
     }
 
     #[test]
@@ -394,7 +402,11 @@ mod tests {
         let line = [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [2.0, 2.0, 2.0]];
         assert!(PlaneEstimator.fit(&line).is_empty());
         assert_eq!(
-            estimate(&PlaneEstimator, &[[0.0, 0.0, f64::NAN]; 4], &RobustOptions::default()),
+            estimate(
+                &PlaneEstimator,
+                &[[0.0, 0.0, f64::NAN]; 4],
+                &RobustOptions::default()
+            ),
             Err(RobustError::NonFinite { index: 0 })
         );
     }

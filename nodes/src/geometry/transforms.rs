@@ -77,7 +77,14 @@ pub fn fit_affine2(data: &[Pair2]) -> Option<Affine2> {
     let a = sxy * sxx.try_inverse()?; // normalized linear part
     let lin = a * (s2 / s1);
     let t = nalgebra::Vector2::new(c2[0], c2[1]) - lin * nalgebra::Vector2::new(c1[0], c1[1]);
-    let m = [lin[(0, 0)], lin[(0, 1)], t[0], lin[(1, 0)], lin[(1, 1)], t[1]];
+    let m = [
+        lin[(0, 0)],
+        lin[(0, 1)],
+        t[0],
+        lin[(1, 0)],
+        lin[(1, 1)],
+        t[1],
+    ];
     m.iter().all(|v| v.is_finite()).then_some(m)
 }
 
@@ -206,7 +213,11 @@ pub fn umeyama(data: &[Pair3], with_scale: bool) -> Option<Similarity3> {
     if !(sorted[1] > 1e-12 * sorted[0]) {
         return None;
     }
-    let d = if (u * v_t).determinant() < 0.0 { -1.0 } else { 1.0 };
+    let d = if (u * v_t).determinant() < 0.0 {
+        -1.0
+    } else {
+        1.0
+    };
     // Flip the direction of the smallest singular value.
     let smallest = (0..3).min_by(|&a, &b| sv[a].total_cmp(&sv[b])).unwrap_or(2);
     let mut diag = Vector3::new(1.0, 1.0, 1.0);
@@ -284,7 +295,9 @@ mod tests {
     use nalgebra::Rotation3;
 
     fn close(a: &[f64], b: &[f64], tol: f64) -> bool {
-        a.iter().zip(b).all(|(x, y)| (x - y).abs() <= tol * (1.0 + y.abs()))
+        a.iter()
+            .zip(b)
+            .all(|(x, y)| (x - y).abs() <= tol * (1.0 + y.abs()))
     }
 
     #[test]
@@ -374,10 +387,15 @@ mod tests {
             }
         }
         // A mirrored target: the result must still be a rotation (det +1).
-        let data: Vec<Pair3> = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 1.0]]
-            .iter()
-            .map(|p| [*p, [-p[0], p[1], p[2]]])
-            .collect();
+        let data: Vec<Pair3> = [
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+            [1.0, 1.0, 1.0],
+        ]
+        .iter()
+        .map(|p| [*p, [-p[0], p[1], p[2]]])
+        .collect();
         let m = umeyama(&data, false).unwrap();
         assert!((m.rotation.determinant() - 1.0).abs() < 1e-12);
         // Collinear sources are degenerate.

@@ -74,10 +74,7 @@ impl TwoViewEstimate {
         m.insert("trials".into(), self.trials as f64);
         m.insert("inliers".into(), self.inliers as f64);
         m.insert("correspondences".into(), n as f64);
-        m.insert(
-            "inlier_ratio".into(),
-            self.inliers as f64 / n.max(1) as f64,
-        );
+        m.insert("inlier_ratio".into(), self.inliers as f64 / n.max(1) as f64);
         m.insert("score".into(), self.score);
         m.insert("rms_px".into(), self.rms_px);
         m.insert("threshold_px".into(), threshold);
@@ -107,7 +104,10 @@ pub fn correspondences(
 }
 
 fn msac(residuals: &[f64], t2: f64) -> f64 {
-    residuals.iter().map(|&r| if r <= t2 { r } else { t2 }).sum()
+    residuals
+        .iter()
+        .map(|&r| if r <= t2 { r } else { t2 })
+        .sum()
 }
 
 /// Robust fit, then LM refinement rounds on the inliers (kept only if the MSAC score does not
@@ -182,7 +182,13 @@ pub fn find_homography(
     options: &RobustOptions,
     refine: bool,
 ) -> Result<TwoViewEstimate, RobustError> {
-    robust_two_view(&HomographyEstimator, data, options, refine, refine_homography)
+    robust_two_view(
+        &HomographyEstimator,
+        data,
+        options,
+        refine,
+        refine_homography,
+    )
 }
 
 /// Robust fundamental matrix with `x_rightᵀ F x_left = 0` (see [`super::fundamental`]).
@@ -191,7 +197,13 @@ pub fn find_fundamental(
     options: &RobustOptions,
     refine: bool,
 ) -> Result<TwoViewEstimate, RobustError> {
-    robust_two_view(&FundamentalEstimator, data, options, refine, refine_fundamental)
+    robust_two_view(
+        &FundamentalEstimator,
+        data,
+        options,
+        refine,
+        refine_fundamental,
+    )
 }
 
 fn matrix_value(m: &Matrix3<f64>) -> Value {
@@ -201,6 +213,17 @@ fn matrix_value(m: &Matrix3<f64>) -> Value {
         cols: 3,
         data,
     }))
+}
+
+/// `h` scaled so that `h₃₃ = 1` (OpenCV's convention), unless `h₃₃` is numerically zero (then
+/// unit Frobenius norm is kept).
+pub fn h33_normalized(h: &Matrix3<f64>) -> Matrix3<f64> {
+    let h33 = h[(2, 2)];
+    if h33.abs() > 1e-12 * h.norm() {
+        h / h33
+    } else {
+        *h
+    }
 }
 
 fn mask_value(mask: &[bool]) -> Value {
@@ -323,7 +346,13 @@ robust_params!(
      Default 1."
 );
 
-fn options(method: RobustMethod, threshold: f64, confidence: f64, max_trials: u32, seed: u64) -> RobustOptions {
+fn options(
+    method: RobustMethod,
+    threshold: f64,
+    confidence: f64,
+    max_trials: u32,
+    seed: u64,
+) -> RobustOptions {
     RobustOptions {
         method: method.method(),
         threshold,
@@ -359,8 +388,8 @@ shrinking threshold) or PROSAC (Chum & Matas 2005; the input must be ordered bes
 as `geometry.matched_points` does). Trials stop adaptively at `log(1−p)/log(1−w⁴)`. With
 `refine`, the model is polished by Levenberg–Marquardt on the symmetric transfer error of its
 inliers (8 parameters), twice with inliers recomputed; a refinement is kept only if it does
-not worsen the MSAC score. `H` is scaled to unit Frobenius norm with `h₃₃ ≥ 0` (OpenCV scales
-`h₃₃ = 1`). Fewer than 4 correspondences, non-finite coordinates or no consensus are errors.
+not worsen the MSAC score. `H` is scaled to `h₃₃ = 1` as OpenCV does (unit Frobenius norm
+if `h₃₃` is numerically 0). Fewer than 4 correspondences, non-finite coordinates or no consensus are errors.
 
 Reference: Hartley & Zisserman, "Multiple View Geometry" §4; Fischler & Bolles 1981; Chum,
 Matas & Kittler 2003; OpenCV `cv::findHomography`.
@@ -376,7 +405,7 @@ Example:
     }
 
     fn outputs() -> Vec<PortSpec> {
-        robust_outputs("H", "3×3 homography, left pixels → right pixels, unit Frobenius norm.")
+        robust_outputs("H", "3×3 homography, left pixels → right pixels, h₃₃ = 1.")
     }
 
     fn new(p: FindHomographyParams) -> Result<Self, String> {
@@ -394,7 +423,7 @@ impl Operator for FindHomography {
         let result = find_homography(&data, &self.options, self.refine)
             .map_err(|e| OpError::failed(format!("no homography: {e}")))?;
         Ok(Outputs::new()
-            .with("H", matrix_value(&result.matrix))
+            .with("H", matrix_value(&h33_normalized(&result.matrix)))
             .with("inlier_mask", mask_value(&result.inlier_mask))
             .with("inliers", Value::Integer(result.inliers as i64))
             .with(
@@ -667,7 +696,10 @@ pub fn select_model(
                 .map(|(e, _)| e.sqrt())
                 .collect();
             transfer.sort_by(f64::total_cmp);
-            let median = transfer.get(transfer.len() / 2).copied().unwrap_or(f64::NAN);
+            let median = transfer
+                .get(transfer.len() / 2)
+                .copied()
+                .unwrap_or(f64::NAN);
             (gric(&f_errors, sigma, 3.0, 7.0), median)
         }
         None => (f64::INFINITY, f64::NAN),
@@ -748,7 +780,11 @@ Example:
                 PortType::Text,
                 "\"homography\" or \"fundamental\", the model with the lower GRIC.",
             ),
-            PortSpec::new("H", PortType::Matrix, "3×3 homography, left → right."),
+            PortSpec::new(
+                "H",
+                PortType::Matrix,
+                "3×3 homography, left → right, h₃₃ = 1.",
+            ),
             PortSpec::new(
                 "F",
                 PortType::Matrix,
@@ -770,8 +806,20 @@ Example:
             return Err(format!("`sigma_px` must be > 0, got {}", p.sigma_px));
         }
         Ok(SelectModel {
-            h_options: options(p.method, p.threshold_h_px, p.confidence, p.max_trials, p.seed),
-            f_options: options(p.method, p.threshold_f_px, p.confidence, p.max_trials, p.seed),
+            h_options: options(
+                p.method,
+                p.threshold_h_px,
+                p.confidence,
+                p.max_trials,
+                p.seed,
+            ),
+            f_options: options(
+                p.method,
+                p.threshold_f_px,
+                p.confidence,
+                p.max_trials,
+                p.seed,
+            ),
             sigma: p.sigma_px,
         })
     }
@@ -802,7 +850,7 @@ impl Operator for SelectModel {
         let model = if h_wins { "homography" } else { "fundamental" };
         Ok(Outputs::new()
             .with("model", Value::Text(model.into()))
-            .with("H", matrix_value(&s.homography.matrix))
+            .with("H", matrix_value(&h33_normalized(&s.homography.matrix)))
             .with("F", matrix_value(&f))
             .with("report", Value::metrics(report)))
     }
@@ -914,15 +962,27 @@ mod tests {
         let left = vec![kp(1.0, 2.0), kp(3.0, 4.0)];
         let right = vec![kp(5.0, 6.0), kp(7.0, 8.0)];
         let matches = vec![
-            Match { query: 0, train: 1, distance: 2.0 },
-            Match { query: 1, train: 0, distance: 1.0 },
+            Match {
+                query: 0,
+                train: 1,
+                distance: 2.0,
+            },
+            Match {
+                query: 1,
+                train: 0,
+                distance: 1.0,
+            },
         ];
         let (l, r) = matched_points(&left, &right, &matches, true).unwrap();
         assert_eq!(l, vec![[3.0, 4.0], [1.0, 2.0]]);
         assert_eq!(r, vec![[5.0, 6.0], [7.0, 8.0]]);
         let (l, _) = matched_points(&left, &right, &matches, false).unwrap();
         assert_eq!(l[0], [1.0, 2.0]);
-        let bad = vec![Match { query: 2, train: 0, distance: 0.0 }];
+        let bad = vec![Match {
+            query: 2,
+            train: 0,
+            distance: 0.0,
+        }];
         assert!(matched_points(&left, &right, &bad, true).is_err());
     }
 
@@ -949,6 +1009,7 @@ mod tests {
         };
         let h = Matrix3::from_row_slice(&h.data);
         assert!(h_distance(&h, &h_true()) < 1e-9);
+        assert_eq!(h[(2, 2)], 1.0);
         let short = vec![
             Some(Value::Points2D(Arc::new(left[..3].to_vec()))),
             Some(Value::Points2D(Arc::new(right[..3].to_vec()))),

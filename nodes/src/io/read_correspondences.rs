@@ -73,7 +73,10 @@ pub fn parse_correspondences(text: &str) -> Result<CorrespondenceFile, String> {
                 .parse()
                 .map_err(|_| format!("line {line_no}: value {} `{f}` is not a number", k + 1))?;
             if !v.is_finite() {
-                return Err(format!("line {line_no}: value {} `{f}` is not finite", k + 1));
+                return Err(format!(
+                    "line {line_no}: value {} `{f}` is not finite",
+                    k + 1
+                ));
             }
             values[k] = v;
         }
@@ -89,7 +92,10 @@ pub fn parse_correspondences(text: &str) -> Result<CorrespondenceFile, String> {
             }
             let flag = values[6];
             if flag.fract() != 0.0 {
-                return Err(format!("line {line_no}: flag `{}` is not an integer", fields[6]));
+                return Err(format!(
+                    "line {line_no}: flag `{}` is not an integer",
+                    fields[6]
+                ));
             }
             out.left.push([values[0] / w1, values[1] / w1]);
             out.right.push([values[3] / w2, values[4] / w2]);
@@ -113,7 +119,8 @@ pub struct ReadCorrespondences {
 impl Op for ReadCorrespondences {
     type Params = ReadCorrespondencesParams;
     const ID: &'static str = "io.read_correspondences";
-    const SUMMARY: &'static str = "Read point correspondences (x1 y1 x2 y2 per line) from a text file.";
+    const SUMMARY: &'static str =
+        "Read point correspondences (x1 y1 x2 y2 per line) from a text file.";
     const DOC: &'static str = r#"
 Reads one correspondence per line in one of two formats, decided by the first data line:
 `x1 y1 x2 y2` (left point, right point, pixels), or the 7-column `x1 y1 w1 x2 y2 w2 flag`
@@ -232,7 +239,8 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("c.txt");
         std::fs::write(&path, "1 2 3 4\n").unwrap();
-        let op = ReadCorrespondences::new(ReadCorrespondencesParams { path: path.clone() }).unwrap();
+        let op =
+            ReadCorrespondences::new(ReadCorrespondencesParams { path: path.clone() }).unwrap();
         let ctx = RunContext {
             node: "m".into(),
             threads: 1,
