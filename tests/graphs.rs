@@ -12,7 +12,10 @@ const SNAPSHOTTED: &[&str] = &[
     "edges.ron",
     "features.ron",
     "filters.ron",
+    "homography.ron",
     "lines.ron",
+    "ransac_fundamental.ron",
+    "ransac_homography.ron",
     "segment.ron",
     "two_branches.ron",
 ];
@@ -49,6 +52,21 @@ fn features() {
 #[test]
 fn filters() {
     check_graph("filters.ron");
+}
+
+#[test]
+fn homography() {
+    check_graph("homography.ron");
+}
+
+#[test]
+fn ransac_homography() {
+    check_graph("ransac_homography.ron");
+}
+
+#[test]
+fn ransac_fundamental() {
+    check_graph("ransac_fundamental.ron");
 }
 
 #[test]

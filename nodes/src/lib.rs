@@ -102,6 +102,11 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<segment::graph_cut::GraphCut>()?;
     registry.register::<io::read_image::ReadImage>()?;
     registry.register::<io::write_image::WriteImage>()?;
+    registry.register::<io::read_correspondences::ReadCorrespondences>()?;
+    registry.register::<geometry::two_view::FindHomography>()?;
+    registry.register::<geometry::two_view::FindFundamental>()?;
+    registry.register::<geometry::two_view::MatchedPoints>()?;
+    registry.register::<geometry::two_view::SelectModel>()?;
     registry.register::<segment::components::Components>()?;
     registry.register::<segment::region_grow::RegionGrow>()?;
     registry.register::<segment::watershed::Watershed>()?;

@@ -4,4 +4,11 @@
 //! Every estimator implements [`robust::Estimator`] (`MIN_SAMPLES`, `fit`, `residuals`), the way
 //! COLMAP's estimators do, so one RANSAC family (RANSAC, MSAC, LO-RANSAC, PROSAC) drives them all.
 
+pub mod fundamental;
+pub mod homography;
+pub mod lm;
+pub mod ransac;
 pub mod robust;
+pub mod shapes;
+pub mod transforms;
+pub mod two_view;

@@ -40,4 +40,11 @@ pub trait Estimator {
     fn is_degenerate(&self, _sample: &[Self::Datum]) -> bool {
         false
     }
+
+    /// Whether a datum is usable (all coordinates finite). The robust loops reject data holding
+    /// a datum for which this is false with a typed error instead of fitting garbage. Defaults
+    /// to always true; estimators over floating-point data should override it.
+    fn datum_is_finite(&self, _datum: &Self::Datum) -> bool {
+        true
+    }
 }

@@ -1,4 +1,5 @@
 //! Reading and writing files.
 
+pub mod read_correspondences;
 pub mod read_image;
 pub mod write_image;
