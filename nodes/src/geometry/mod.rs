@@ -4,4 +4,8 @@
 //! Every estimator implements [`robust::Estimator`] (`MIN_SAMPLES`, `fit`, `residuals`), the way
 //! COLMAP's estimators do, so one RANSAC family (RANSAC, MSAC, LO-RANSAC, PROSAC) drives them all.
 
+pub mod calibrate;
+pub mod camera;
+pub mod projection;
+pub mod rectify;
 pub mod robust;
