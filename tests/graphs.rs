@@ -9,6 +9,7 @@ use common::{example_graphs, files_below, ocellus, root, stderr, temp_dir};
 
 /// Graphs with a snapshot test below; a new graph must be added here.
 const SNAPSHOTTED: &[&str] = &[
+    "calibrate.ron",
     "edges.ron",
     "features.ron",
     "filters.ron",
@@ -124,4 +125,9 @@ fn emitted_files_are_identical_for_one_and_two_threads() {
         );
         std::fs::remove_dir_all(&dir).unwrap();
     }
+}
+
+#[test]
+fn calibrate() {
+    check_graph("calibrate.ron");
 }

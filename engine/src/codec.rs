@@ -33,7 +33,8 @@
 //! | 18 | Metrics | `u64 n`, n × (string name, `f64`), names strictly increasing |
 //! | 19 | List | element type, `u64 n`, n values |
 //!
-//! A camera is `u8 model (0 SIMPLE_PINHOLE, 1 PINHOLE, 2 SIMPLE_RADIAL, 3 RADIAL, 4 OPENCV), u32
+//! A camera is `u8 model (0 SIMPLE_PINHOLE, 1 PINHOLE, 2 SIMPLE_RADIAL, 3 RADIAL, 4 OPENCV,
+//! 5 radial–tangential with skew, 6 fisheye with skew), u32
 //! width, u32 height, u64 n`, n f64 params. An element type is a `u8`: 0..=18 the non-list types in
 //! the order of [`SCALAR_PORT_TYPES`], 19 = `List` followed by its element type.
 //!
@@ -525,6 +526,8 @@ fn camera_model_tag(model: CameraModel) -> u8 {
         CameraModel::SimpleRadial => 2,
         CameraModel::Radial => 3,
         CameraModel::OpenCv => 4,
+        CameraModel::RadialTangential => 5,
+        CameraModel::Fisheye => 6,
     }
 }
 
@@ -748,6 +751,8 @@ impl<'a> Decoder<'a> {
             2 => CameraModel::SimpleRadial,
             3 => CameraModel::Radial,
             4 => CameraModel::OpenCv,
+            5 => CameraModel::RadialTangential,
+            6 => CameraModel::Fisheye,
             tag => {
                 return Err(CodecError::UnknownTag {
                     offset: at,

@@ -14,8 +14,8 @@
 //! | Metrics | `NAME.json` | object name → number, keys sorted |
 //! | Keypoints | `NAME.json` | `[{"x","y","size","angle","response","octave"}…]` |
 //! | Matches | `NAME.json` | `[{"query","train","distance"}…]` |
-//! | Camera | `NAME.json` | `{"model":"PINHOLE","width","height","params":[…]}` (COLMAP model names) |
-//! | Pose | `NAME.json` | `{"rotation":[w,x,y,z],"translation":[x,y,z]}` |
+//! | Camera | `NAME.json` | `{"width","height","fx","fy","cx","cy","skew","distortion":D}`; D is `{"model":"radial_tangential","k1","k2","p1","p2","k3"}`, `{"model":"fisheye","k1","k2","k3","k4"}` or `{"model":"none"}` (COLMAP's radial models give `radial_tangential` with `p1 = p2 = 0`) |
+//! | Pose | `NAME.json` | `{"rotation":[r00,r01,r02,r10,…,r22],"translation":[x,y,z]}`: R row-major, `x_to = R·x_from + t` |
 //! | Points2D | `NAME.json` | `[[x,y]…]` |
 //! | Descriptors | `NAME.json` | `{"kind":"float"\|"binary","rows","cols","data":[…]}`; for binary, `cols` counts bytes and `data` holds bytes 0..=255 |
 //! | Tracks | `NAME.json` | `{"tracks":[[{"image","keypoint"}…]…]}` |
@@ -45,7 +45,9 @@
 //! {"type":"directional","direction","irradiance"}…],"cameras":[{"camera":Camera,
 //! "camera_from_world":Pose}…]}`. Absent optional mesh attributes are `null`.
 //!
-//! **Reconstruction.** COLMAP's text layout and header comments; images and points are written
+//! **Reconstruction.** COLMAP's text layout and header comments; cameras with skew
+//! (radial–tangential → `FULL_OPENCV`, fisheye → `OPENCV_FISHEYE`) lose the skew, which COLMAP
+//! cannot represent (see [`Camera::colmap_params`]); images and points are written
 //! in increasing id order, an image's `POINTS2D` line is empty when it has no observations, and
 //! a 2-D point without a 3-D point has `POINT3D_ID` `-1`. Image names must not contain line
 //! breaks.
@@ -65,7 +67,7 @@ use serde::Serialize;
 use crate::image_io::{self, ImageIoError, write_atomic_with};
 use crate::summary::fmt_sig6;
 use crate::value::{
-    Camera, Channels, Depth, Descriptors, Image, Light, Matrix, Mesh, PointCloud, Pose,
+    Camera, Channels, Depth, Descriptors, Distortion, Image, Light, Matrix, Mesh, PointCloud, Pose,
     Reconstruction, Scene, Value, ValueList,
 };
 
@@ -126,7 +128,7 @@ pub fn emit_value(dir: &Path, name: &str, value: &Value) -> Result<Vec<PathBuf>,
             json_path(),
             write_json(&json_path(), &CameraJson::from(&**c)),
         ),
-        Value::Pose(p) => one(json_path(), write_json(&json_path(), p)),
+        Value::Pose(p) => one(json_path(), write_json(&json_path(), &PoseJson::from(p))),
         Value::Points2D(p) => one(json_path(), write_json(&json_path(), &**p)),
         Value::Descriptors(d) => one(
             json_path(),
@@ -244,20 +246,71 @@ impl<'a> From<&'a Matrix> for MatrixJson<'a> {
 }
 
 #[derive(Serialize)]
-struct CameraJson<'a> {
-    model: &'static str,
+struct CameraJson {
     width: u32,
     height: u32,
-    params: &'a [f64],
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    skew: f64,
+    distortion: DistortionJson,
 }
 
-impl<'a> From<&'a Camera> for CameraJson<'a> {
-    fn from(c: &'a Camera) -> Self {
+#[derive(Serialize)]
+#[serde(tag = "model", rename_all = "snake_case")]
+enum DistortionJson {
+    None,
+    RadialTangential {
+        k1: f64,
+        k2: f64,
+        p1: f64,
+        p2: f64,
+        k3: f64,
+    },
+    Fisheye {
+        k1: f64,
+        k2: f64,
+        k3: f64,
+        k4: f64,
+    },
+}
+
+impl From<&Camera> for CameraJson {
+    fn from(c: &Camera) -> Self {
+        let k = c.intrinsics();
+        let distortion = match c.distortion() {
+            Distortion::None => DistortionJson::None,
+            Distortion::RadialTangential([k1, k2, p1, p2, k3]) => {
+                DistortionJson::RadialTangential { k1, k2, p1, p2, k3 }
+            }
+            Distortion::Fisheye([k1, k2, k3, k4]) => DistortionJson::Fisheye { k1, k2, k3, k4 },
+        };
         CameraJson {
-            model: c.model.colmap_name(),
             width: c.width,
             height: c.height,
-            params: &c.params,
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            skew: k.skew,
+            distortion,
+        }
+    }
+}
+
+/// A pose as a row-major rotation matrix and a translation.
+#[derive(Serialize)]
+struct PoseJson {
+    rotation: [f64; 9],
+    translation: [f64; 3],
+}
+
+impl From<&Pose> for PoseJson {
+    fn from(p: &Pose) -> Self {
+        PoseJson {
+            rotation: p.rotation_matrix(),
+            translation: p.translation,
         }
     }
 }
@@ -301,7 +354,7 @@ impl<'a> From<&'a Descriptors> for DescriptorsJson<'a> {
 struct SceneJson<'a> {
     objects: Vec<SceneObjectJson<'a>>,
     lights: Vec<LightJson>,
-    cameras: Vec<SceneCameraJson<'a>>,
+    cameras: Vec<SceneCameraJson>,
 }
 
 #[derive(Serialize)]
@@ -309,7 +362,7 @@ struct SceneObjectJson<'a> {
     name: &'a str,
     vertex_count: usize,
     triangle_count: usize,
-    world_from_object: &'a Pose,
+    world_from_object: PoseJson,
     albedo: [f32; 3],
     mesh: &'a Mesh,
 }
@@ -328,9 +381,9 @@ enum LightJson {
 }
 
 #[derive(Serialize)]
-struct SceneCameraJson<'a> {
-    camera: CameraJson<'a>,
-    camera_from_world: &'a Pose,
+struct SceneCameraJson {
+    camera: CameraJson,
+    camera_from_world: PoseJson,
 }
 
 impl<'a> From<&'a Scene> for SceneJson<'a> {
@@ -343,7 +396,7 @@ impl<'a> From<&'a Scene> for SceneJson<'a> {
                     name: &o.name,
                     vertex_count: o.mesh.positions.len(),
                     triangle_count: o.mesh.triangles.len(),
-                    world_from_object: &o.world_from_object,
+                    world_from_object: PoseJson::from(&o.world_from_object),
                     albedo: o.albedo,
                     mesh: &o.mesh,
                 })
@@ -373,7 +426,7 @@ impl<'a> From<&'a Scene> for SceneJson<'a> {
                 .iter()
                 .map(|(camera, pose)| SceneCameraJson {
                     camera: CameraJson::from(camera),
-                    camera_from_world: pose,
+                    camera_from_world: PoseJson::from(pose),
                 })
                 .collect(),
         }
@@ -601,7 +654,7 @@ fn emit_reconstruction(
                 camera.width,
                 camera.height
             )?;
-            for p in &camera.params {
+            for p in camera.colmap_params() {
                 write!(w, " {p}")?;
             }
             writeln!(w)?;
@@ -724,8 +777,8 @@ mod tests {
     use crate::image_io::{DecodeLimits, read_image};
     use crate::types::PortType;
     use crate::value::{
-        Animation, AnimationChannel, CameraModel, Keypoint, Match, Metrics, ReconImage, ReconPoint,
-        SceneObject, TrackElement, Tracks,
+        Animation, AnimationChannel, CameraModel, Distortion, Intrinsics, Keypoint, Match, Metrics,
+        ReconImage, ReconPoint, SceneObject, TrackElement, Tracks,
     };
 
     fn scratch(name: &str) -> PathBuf {
@@ -814,7 +867,59 @@ mod tests {
         };
         assert_eq!(
             emit_json(&dir, Value::Camera(Arc::new(camera))),
-            json!({"model": "SIMPLE_RADIAL", "width": 640, "height": 480, "params": [500.0, 320.0, 240.0, 0.01]})
+            json!({"width": 640, "height": 480, "fx": 500.0, "fy": 500.0, "cx": 320.0, "cy": 240.0,
+                   "skew": 0.0,
+                   "distortion": {"model": "radial_tangential", "k1": 0.01, "k2": 0.0, "p1": 0.0,
+                                  "p2": 0.0, "k3": 0.0}})
+        );
+        let full = Camera::from_parts(
+            640,
+            480,
+            Intrinsics {
+                fx: 500.0,
+                fy: 501.0,
+                cx: 320.0,
+                cy: 240.0,
+                skew: 0.25,
+            },
+            Distortion::RadialTangential([0.1, -0.2, 0.001, 0.002, 0.05]),
+        );
+        assert_eq!(
+            emit_json(&dir, Value::Camera(Arc::new(full))),
+            json!({"width": 640, "height": 480, "fx": 500.0, "fy": 501.0, "cx": 320.0, "cy": 240.0,
+                   "skew": 0.25,
+                   "distortion": {"model": "radial_tangential", "k1": 0.1, "k2": -0.2, "p1": 0.001,
+                                  "p2": 0.002, "k3": 0.05}})
+        );
+        let fisheye = Camera::from_parts(
+            320,
+            240,
+            Intrinsics {
+                fx: 200.0,
+                fy: 200.0,
+                cx: 160.0,
+                cy: 120.0,
+                skew: 0.0,
+            },
+            Distortion::Fisheye([0.1, 0.01, -0.002, 0.0005]),
+        );
+        assert_eq!(
+            emit_json(&dir, Value::Camera(Arc::new(fisheye))),
+            json!({"width": 320, "height": 240, "fx": 200.0, "fy": 200.0, "cx": 160.0, "cy": 120.0,
+                   "skew": 0.0,
+                   "distortion": {"model": "fisheye", "k1": 0.1, "k2": 0.01, "k3": -0.002,
+                                  "k4": 0.0005}})
+        );
+        let pinhole = Camera {
+            model: CameraModel::Pinhole,
+            width: 4,
+            height: 3,
+            params: vec![10.0, 11.0, 2.0, 1.5],
+        };
+        assert_eq!(
+            emit_json(&dir, Value::Camera(Arc::new(pinhole))),
+            json!({"width": 4, "height": 3, "fx": 10.0, "fy": 11.0, "cx": 2.0, "cy": 1.5,
+                   "skew": 0.0, "distortion": {"model": "none"}})
         );
         let pose = Pose {
             rotation: [1.0, 0.0, 0.0, 0.0],
@@ -822,7 +927,28 @@ mod tests {
         };
         assert_eq!(
             emit_json(&dir, Value::Pose(pose)),
-            json!({"rotation": [1.0, 0.0, 0.0, 0.0], "translation": [1.0, 2.0, 3.0]})
+            json!({"rotation": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                   "translation": [1.0, 2.0, 3.0]})
+        );
+        // 90° about z: x → y.
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        let v = emit_json(
+            &dir,
+            Value::Pose(Pose {
+                rotation: [h, 0.0, 0.0, h],
+                translation: [0.0; 3],
+            }),
+        );
+        let r: Vec<f64> = v["rotation"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
+        let want = [0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0];
+        assert!(
+            r.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-12),
+            "{r:?}"
         );
         assert_eq!(
             emit_json(
@@ -1256,10 +1382,13 @@ mod tests {
             v["lights"][0],
             json!({"type": "point", "position": [0.0, 5.0, 0.0], "intensity": [1.0, 1.0, 1.0]})
         );
-        assert_eq!(v["cameras"][0]["camera"]["model"], "SIMPLE_PINHOLE");
+        assert_eq!(
+            v["cameras"][0]["camera"]["distortion"],
+            json!({"model": "none"})
+        );
         assert_eq!(
             v["cameras"][0]["camera_from_world"]["rotation"],
-            json!([1.0, 0.0, 0.0, 0.0])
+            json!([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
         );
         fs::remove_dir_all(&dir).unwrap();
     }

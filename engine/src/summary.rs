@@ -27,8 +27,8 @@
 use std::fmt::Write as _;
 
 use crate::value::{
-    Animation, Camera, Descriptors, Image, Keypoint, Match, Matrix, Mesh, Metrics, PixelData,
-    PointCloud, Pose, Reconstruction, Scene, Tracks, Value, ValueList,
+    Animation, Camera, Descriptors, Distortion, Image, Keypoint, Match, Matrix, Mesh, Metrics,
+    PixelData, PointCloud, Pose, Reconstruction, Scene, Tracks, Value, ValueList,
 };
 
 /// Indentation step of nested blocks.
@@ -494,19 +494,28 @@ fn write_matrix(out: &mut String, m: &Matrix, indent: usize) {
 }
 
 fn camera_summary(camera: &Camera) -> String {
+    let k = camera.intrinsics();
+    let distortion = match camera.distortion() {
+        Distortion::None => "none".to_string(),
+        Distortion::RadialTangential(d) => format!("radial_tangential {}", list_f64(d)),
+        Distortion::Fisheye(d) => format!("fisheye {}", list_f64(d)),
+    };
     format!(
-        "Camera(model: \"{}\", width: {}, height: {}, params: {})",
-        camera.model.colmap_name(),
+        "Camera(width: {}, height: {}, fx: {}, fy: {}, cx: {}, cy: {}, skew: {}, distortion: \"{distortion}\")",
         camera.width,
         camera.height,
-        list_f64(camera.params.iter().copied())
+        fmt_sig6(k.fx),
+        fmt_sig6(k.fy),
+        fmt_sig6(k.cx),
+        fmt_sig6(k.cy),
+        fmt_sig6(k.skew),
     )
 }
 
 fn pose_summary(pose: &Pose) -> String {
     format!(
         "Pose(rotation: {}, translation: {})",
-        list_f64(pose.rotation),
+        list_f64(pose.rotation_matrix()),
         list_f64(pose.translation)
     )
 }
@@ -889,11 +898,11 @@ mod tests {
         };
         assert_eq!(
             summarize_value(&Value::Camera(Arc::new(camera))),
-            "Camera(model: \"PINHOLE\", width: 640, height: 480, params: [500, 500, 320, 240])"
+            "Camera(width: 640, height: 480, fx: 500, fy: 500, cx: 320, cy: 240, skew: 0, distortion: \"none\")"
         );
         assert_eq!(
             summarize_value(&Value::Pose(Pose::IDENTITY)),
-            "Pose(rotation: [1, 0, 0, 0], translation: [0, 0, 0])"
+            "Pose(rotation: [1, 0, 0, 0, 1, 0, 0, 0, 1], translation: [0, 0, 0])"
         );
         let cloud = PointCloud {
             positions: vec![[0.0, 0.0, 0.0], [2.0, 4.0, -1.0]],

@@ -430,7 +430,8 @@ impl Matrix {
     }
 }
 
-/// Camera projection models, with COLMAP's parameter orders.
+/// Camera projection models. The COLMAP ones keep COLMAP's parameter orders; the last two carry
+/// a full pinhole matrix with skew and OpenCV's distortion models.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 pub enum CameraModel {
     /// `f, cx, cy`.
@@ -443,10 +444,19 @@ pub enum CameraModel {
     Radial,
     /// `fx, fy, cx, cy, k1, k2, p1, p2` (OpenCV's first four distortion terms).
     OpenCv,
+    /// `fx, fy, cx, cy, skew, k1, k2, p1, p2, k3`: pinhole `K = [[fx, skew, cx], [0, fy, cy],
+    /// [0, 0, 1]]` and Brown–Conrady radial–tangential distortion in OpenCV's order and formulas
+    /// (`cv::projectPoints` with 5 coefficients). COLMAP export: `FULL_OPENCV` (no skew there).
+    RadialTangential,
+    /// `fx, fy, cx, cy, skew, k1, k2, k3, k4`: pinhole K with skew and Kannala–Brandt equidistant
+    /// distortion `θd = θ(1 + k1θ² + k2θ⁴ + k3θ⁶ + k4θ⁸)` (OpenCV's `cv::fisheye`). COLMAP export:
+    /// `OPENCV_FISHEYE` (no skew there).
+    Fisheye,
 }
 
 impl CameraModel {
-    /// COLMAP's model name (`PINHOLE`, `OPENCV`, ...).
+    /// COLMAP's model name (`PINHOLE`, `OPENCV`, ...). [`CameraModel::RadialTangential`] is
+    /// `FULL_OPENCV` and [`CameraModel::Fisheye`] `OPENCV_FISHEYE`.
     pub fn colmap_name(self) -> &'static str {
         match self {
             CameraModel::SimplePinhole => "SIMPLE_PINHOLE",
@@ -454,6 +464,8 @@ impl CameraModel {
             CameraModel::SimpleRadial => "SIMPLE_RADIAL",
             CameraModel::Radial => "RADIAL",
             CameraModel::OpenCv => "OPENCV",
+            CameraModel::RadialTangential => "FULL_OPENCV",
+            CameraModel::Fisheye => "OPENCV_FISHEYE",
         }
     }
 
@@ -465,8 +477,37 @@ impl CameraModel {
             CameraModel::SimpleRadial => 4,
             CameraModel::Radial => 5,
             CameraModel::OpenCv => 8,
+            CameraModel::RadialTangential => 10,
+            CameraModel::Fisheye => 9,
         }
     }
+}
+
+/// Lens distortion of a camera, in OpenCV's conventions.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Distortion {
+    /// An ideal pinhole.
+    None,
+    /// Brown–Conrady `[k1, k2, p1, p2, k3]` (OpenCV's first five coefficients).
+    RadialTangential([f64; 5]),
+    /// Kannala–Brandt equidistant `[k1, k2, k3, k4]` (OpenCV's `cv::fisheye`).
+    Fisheye([f64; 4]),
+}
+
+/// Pinhole intrinsics: `K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]`, pixels (pixel centres
+/// at integers).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Intrinsics {
+    /// Focal length along x, pixels.
+    pub fx: f64,
+    /// Focal length along y, pixels.
+    pub fy: f64,
+    /// Principal point x, pixels.
+    pub cx: f64,
+    /// Principal point y, pixels.
+    pub cy: f64,
+    /// Skew (K\[0\]\[1\]), pixels; 0 for square pixel grids.
+    pub skew: f64,
 }
 
 /// Camera intrinsics: model, image size and parameters in the model's order.
@@ -480,6 +521,87 @@ pub struct Camera {
     pub height: u32,
     /// Parameters, `model.param_count()` of them.
     pub params: Vec<f64>,
+}
+
+impl Camera {
+    /// A [`CameraModel::RadialTangential`] camera, or [`CameraModel::Fisheye`] for fisheye
+    /// distortion; no distortion gives the radial–tangential model with zero coefficients.
+    pub fn from_parts(width: u32, height: u32, k: Intrinsics, distortion: Distortion) -> Camera {
+        let base = [k.fx, k.fy, k.cx, k.cy, k.skew];
+        let (model, extra): (CameraModel, Vec<f64>) = match distortion {
+            Distortion::None => (CameraModel::RadialTangential, vec![0.0; 5]),
+            Distortion::RadialTangential(d) => (CameraModel::RadialTangential, d.to_vec()),
+            Distortion::Fisheye(d) => (CameraModel::Fisheye, d.to_vec()),
+        };
+        let mut params = base.to_vec();
+        params.extend(extra);
+        Camera {
+            model,
+            width,
+            height,
+            params,
+        }
+    }
+
+    fn param(&self, i: usize) -> f64 {
+        self.params.get(i).copied().unwrap_or(0.0)
+    }
+
+    /// The pinhole matrix's entries (missing parameters read as 0).
+    pub fn intrinsics(&self) -> Intrinsics {
+        let p = |i| self.param(i);
+        let (fx, fy, cx, cy, skew) = match self.model {
+            CameraModel::SimplePinhole | CameraModel::SimpleRadial | CameraModel::Radial => {
+                (p(0), p(0), p(1), p(2), 0.0)
+            }
+            CameraModel::Pinhole | CameraModel::OpenCv => (p(0), p(1), p(2), p(3), 0.0),
+            CameraModel::RadialTangential | CameraModel::Fisheye => (p(0), p(1), p(2), p(3), p(4)),
+        };
+        Intrinsics {
+            fx,
+            fy,
+            cx,
+            cy,
+            skew,
+        }
+    }
+
+    /// The lens distortion (COLMAP's radial models map `k` to `k1`, `k2` with no tangential
+    /// terms).
+    pub fn distortion(&self) -> Distortion {
+        let p = |i| self.param(i);
+        match self.model {
+            CameraModel::SimplePinhole | CameraModel::Pinhole => Distortion::None,
+            CameraModel::SimpleRadial => Distortion::RadialTangential([p(3), 0.0, 0.0, 0.0, 0.0]),
+            CameraModel::Radial => Distortion::RadialTangential([p(3), p(4), 0.0, 0.0, 0.0]),
+            CameraModel::OpenCv => Distortion::RadialTangential([p(4), p(5), p(6), p(7), 0.0]),
+            CameraModel::RadialTangential => {
+                Distortion::RadialTangential([p(5), p(6), p(7), p(8), p(9)])
+            }
+            CameraModel::Fisheye => Distortion::Fisheye([p(5), p(6), p(7), p(8)]),
+        }
+    }
+
+    /// Parameters in COLMAP's order for [`CameraModel::colmap_name`]. COLMAP has no skew: the
+    /// skew of [`CameraModel::RadialTangential`] and [`CameraModel::Fisheye`] is dropped (exact
+    /// only when it is 0); `FULL_OPENCV`'s `k4, k5, k6` are written as 0.
+    pub fn colmap_params(&self) -> Vec<f64> {
+        let k = self.intrinsics();
+        match (self.model, self.distortion()) {
+            (CameraModel::RadialTangential, Distortion::RadialTangential(d)) => {
+                let mut v = vec![k.fx, k.fy, k.cx, k.cy];
+                v.extend(d[..4].iter().copied());
+                v.extend([d[4], 0.0, 0.0, 0.0]);
+                v
+            }
+            (CameraModel::Fisheye, Distortion::Fisheye(d)) => {
+                let mut v = vec![k.fx, k.fy, k.cx, k.cy];
+                v.extend(d);
+                v
+            }
+            _ => self.params.clone(),
+        }
+    }
 }
 
 /// A rigid transform `x_to = R · x_from + t`. Its name at the use site says which frames it maps
@@ -498,6 +620,78 @@ impl Pose {
         rotation: [1.0, 0.0, 0.0, 0.0],
         translation: [0.0, 0.0, 0.0],
     };
+
+    /// The rotation as a 3×3 row-major matrix (the quaternion is normalized first; a zero
+    /// quaternion gives the identity).
+    pub fn rotation_matrix(&self) -> [f64; 9] {
+        let [w, x, y, z] = self.rotation;
+        let n = (w * w + x * x + y * y + z * z).sqrt();
+        if n == 0.0 || !n.is_finite() {
+            return [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
+        }
+        let (w, x, y, z) = (w / n, x / n, y / n, z / n);
+        [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y - w * z),
+            2.0 * (x * z + w * y),
+            2.0 * (x * y + w * z),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z - w * x),
+            2.0 * (x * z - w * y),
+            2.0 * (y * z + w * x),
+            1.0 - 2.0 * (x * x + y * y),
+        ]
+    }
+
+    /// A pose from a row-major rotation matrix (assumed orthonormal, det +1) and a translation;
+    /// the quaternion has `w ≥ 0` (Shepperd's method, stable for every rotation).
+    pub fn from_rotation_matrix(r: &[f64; 9], translation: [f64; 3]) -> Pose {
+        let tr = r[0] + r[4] + r[8];
+        let q = if tr > 0.0 {
+            let s = (tr + 1.0).sqrt() * 2.0;
+            [
+                s / 4.0,
+                (r[7] - r[5]) / s,
+                (r[2] - r[6]) / s,
+                (r[3] - r[1]) / s,
+            ]
+        } else if r[0] > r[4] && r[0] > r[8] {
+            let s = (1.0 + r[0] - r[4] - r[8]).sqrt() * 2.0;
+            [
+                (r[7] - r[5]) / s,
+                s / 4.0,
+                (r[1] + r[3]) / s,
+                (r[2] + r[6]) / s,
+            ]
+        } else if r[4] > r[8] {
+            let s = (1.0 + r[4] - r[0] - r[8]).sqrt() * 2.0;
+            [
+                (r[2] - r[6]) / s,
+                (r[1] + r[3]) / s,
+                s / 4.0,
+                (r[5] + r[7]) / s,
+            ]
+        } else {
+            let s = (1.0 + r[8] - r[0] - r[4]).sqrt() * 2.0;
+            [
+                (r[3] - r[1]) / s,
+                (r[2] + r[6]) / s,
+                (r[5] + r[7]) / s,
+                s / 4.0,
+            ]
+        };
+        let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
+        let rotation = if n > 0.0 && n.is_finite() {
+            q.map(|v| sign * v / n)
+        } else {
+            [1.0, 0.0, 0.0, 0.0]
+        };
+        Pose {
+            rotation,
+            translation,
+        }
+    }
 }
 
 /// 3-D points with optional per-point colors and normals.
@@ -832,6 +1026,77 @@ mod tests {
     fn byte_size_counts_samples() {
         let img = Image::from_f32(4, 2, Channels::Rgba, vec![0.0; 32]).unwrap();
         assert_eq!(Value::image(img).byte_size(), 128);
+    }
+
+    #[test]
+    fn pose_matrix_round_trip() {
+        for q in [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+            [0.5, 0.5, -0.5, 0.5],
+            [0.9, 0.1, -0.3, 0.2],
+        ] {
+            let n = q.iter().map(|v: &f64| v * v).sum::<f64>().sqrt();
+            let q = q.map(|v| v / n);
+            let p = Pose {
+                rotation: q,
+                translation: [1.0, 2.0, 3.0],
+            };
+            let r = p.rotation_matrix();
+            let back = Pose::from_rotation_matrix(&r, p.translation);
+            let r2 = back.rotation_matrix();
+            for (a, b) in r.iter().zip(&r2) {
+                assert!((a - b).abs() < 1e-12, "{q:?}");
+            }
+            let det = r[0] * (r[4] * r[8] - r[5] * r[7]) - r[1] * (r[3] * r[8] - r[5] * r[6])
+                + r[2] * (r[3] * r[7] - r[4] * r[6]);
+            assert!((det - 1.0).abs() < 1e-12);
+        }
+        // 90° about z maps x to y.
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        let r = Pose {
+            rotation: [h, 0.0, 0.0, h],
+            translation: [0.0; 3],
+        }
+        .rotation_matrix();
+        assert!((r[3] - 1.0).abs() < 1e-12 && (r[1] + 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn camera_parts() {
+        let k = Intrinsics {
+            fx: 500.0,
+            fy: 510.0,
+            cx: 320.0,
+            cy: 240.0,
+            skew: 0.5,
+        };
+        let d = Distortion::RadialTangential([0.1, -0.2, 0.001, 0.002, 0.03]);
+        let c = Camera::from_parts(640, 480, k, d);
+        assert_eq!(c.params.len(), c.model.param_count());
+        assert_eq!(c.intrinsics(), k);
+        assert_eq!(c.distortion(), d);
+        assert_eq!(c.colmap_params().len(), 12);
+        let f = Camera::from_parts(640, 480, k, Distortion::Fisheye([0.1, 0.2, 0.3, 0.4]));
+        assert_eq!(f.params.len(), f.model.param_count());
+        assert_eq!(f.distortion(), Distortion::Fisheye([0.1, 0.2, 0.3, 0.4]));
+        assert_eq!(
+            f.colmap_params(),
+            vec![500.0, 510.0, 320.0, 240.0, 0.1, 0.2, 0.3, 0.4]
+        );
+        let s = Camera {
+            model: CameraModel::SimpleRadial,
+            width: 1,
+            height: 1,
+            params: vec![100.0, 1.0, 2.0, 0.5],
+        };
+        assert_eq!(s.intrinsics().fy, 100.0);
+        assert_eq!(
+            s.distortion(),
+            Distortion::RadialTangential([0.5, 0.0, 0.0, 0.0, 0.0])
+        );
     }
 
     #[test]

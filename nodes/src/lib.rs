@@ -116,6 +116,11 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<matching::patch::PatchMatch>()?;
     registry.register::<matching::draw::DrawMatches>()?;
     registry.register::<analyze::match_accuracy::MatchAccuracy>()?;
+    registry.register::<geometry::calibrate::Calibrate>()?;
+    registry.register::<geometry::projection::CalibrateDlt>()?;
+    registry.register::<geometry::rectify::Undistort>()?;
+    registry.register::<geometry::rectify::StereoRectify>()?;
+    registry.register::<geometry::rectify::DisparityToDepth>()?;
     Ok(())
 }
 

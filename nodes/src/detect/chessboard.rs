@@ -35,7 +35,7 @@ params! {
     /// Parameters of `detect.chessboard`.
     pub struct ChessboardParams {
         /// Inner corners per chessboard row (OpenCV's `patternSize.width`). Default 9.
-        columns: u32 = 9 => [min = 2],
+        cols: u32 = 9 => [min = 2],
         /// Inner corners per column (OpenCV's `patternSize.height`). Default 6.
         rows: u32 = 6 => [min = 2],
         /// Standard deviation (pixels) of the Gaussian applied before the saddle response;
@@ -76,7 +76,7 @@ impl Default for ChessboardSettings {
     fn default() -> Self {
         let p = ChessboardParams::default();
         ChessboardSettings {
-            columns: p.columns as usize,
+            columns: p.cols as usize,
             rows: p.rows as usize,
             sigma: p.sigma,
             min_response: p.min_response,
@@ -602,7 +602,7 @@ impl Op for Chessboard {
     const ID: &'static str = "detect.chessboard";
     const SUMMARY: &'static str = "Finds the inner corners of a calibration chessboard, ordered row-major and refined to subpixel accuracy.";
     const DOC: &'static str = r#"
-Detects a chessboard of `columns × rows` inner corners (OpenCV's patternSize = (columns, rows))
+Detects a chessboard of `cols × rows` inner corners (OpenCV's patternSize = (cols, rows))
 and returns its corners ordered row-major with subpixel accuracy, like OpenCV's
 `findChessboardCorners` followed by `cornerSubPix`.
 
@@ -645,7 +645,7 @@ orthogonality).
 
 Example (a node of a graph):
     "board": (op: "detect.chessboard", inputs: { "image": "frame.image" },
-              params: (columns: 9, rows: 6, refine_window: 5)),
+              params: (cols: 9, rows: 6, refine_window: 5)),
 "#;
 
     fn inputs() -> Vec<PortSpec> {
@@ -672,10 +672,10 @@ Example (a node of a graph):
     }
 
     fn new(p: ChessboardParams) -> Result<Self, String> {
-        if p.columns < 2 || p.rows < 2 {
+        if p.cols < 2 || p.rows < 2 {
             return Err(format!(
                 "need at least 2 × 2 inner corners, got {} × {}",
-                p.columns, p.rows
+                p.cols, p.rows
             ));
         }
         if !p.sigma.is_finite() || !(0.5..=20.0).contains(&p.sigma) {
@@ -704,7 +704,7 @@ Example (a node of a graph):
         }
         Ok(Chessboard {
             settings: ChessboardSettings {
-                columns: p.columns as usize,
+                columns: p.cols as usize,
                 rows: p.rows as usize,
                 sigma: p.sigma,
                 min_response: p.min_response,
@@ -960,7 +960,7 @@ mod tests {
         );
         assert!(
             Chessboard::new(ChessboardParams {
-                columns: 1,
+                cols: 1,
                 ..ChessboardParams::default()
             })
             .is_err()

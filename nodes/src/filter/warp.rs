@@ -393,6 +393,14 @@ impl Operator for WarpPerspective {
 /// module documentation for the arithmetic. An empty source gives the constant border value
 /// everywhere (any other border mode is an error then).
 pub fn warp(image: &Image, transform: &Transform, options: &WarpOptions) -> Result<Image, String> {
+    warp_with(image, transform, options)
+}
+
+fn warp_with<C: SourceCoords>(
+    image: &Image,
+    transform: &C,
+    options: &WarpOptions,
+) -> Result<Image, String> {
     let (dw, dh) = options.size.unwrap_or((image.width(), image.height()));
     if image.is_empty() && options.border != BorderMode::Constant && dw * dh > 0 {
         return Err(format!(
@@ -443,6 +451,68 @@ fn weights_1d<const TAPS: usize>(t: f32) -> [f32; TAPS] {
     w
 }
 
+/// Where each destination pixel reads the source: a [`Transform`] or a per-pixel
+/// [`RemapTable`].
+pub trait SourceCoords: Sync {
+    /// Source coordinates of destination row `y` (`xs.len()` pixels).
+    fn row(&self, y: usize, xs: &mut [f64], ys: &mut [f64]);
+}
+
+impl SourceCoords for Transform {
+    #[inline]
+    fn row(&self, y: usize, xs: &mut [f64], ys: &mut [f64]) {
+        row_coords(self, y, xs, ys);
+    }
+}
+
+/// Per-pixel source coordinates (OpenCV's `remap` maps as two f32 planes), row-major,
+/// `width × height` of each.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RemapTable {
+    /// Destination width, pixels.
+    pub width: usize,
+    /// Destination height, pixels.
+    pub height: usize,
+    /// Source x of each destination pixel.
+    pub map_x: Vec<f32>,
+    /// Source y of each destination pixel.
+    pub map_y: Vec<f32>,
+}
+
+impl SourceCoords for RemapTable {
+    #[inline]
+    fn row(&self, y: usize, xs: &mut [f64], ys: &mut [f64]) {
+        let at = y * self.width;
+        let n = xs.len();
+        for (o, &v) in xs.iter_mut().zip(&self.map_x[at..at + n]) {
+            *o = f64::from(v);
+        }
+        for (o, &v) in ys.iter_mut().zip(&self.map_y[at..at + n]) {
+            *o = f64::from(v);
+        }
+    }
+}
+
+/// OpenCV's `remap`: destination pixel (x, y) reads the source at `(map_x, map_y)` with the
+/// warps' samplers (`options.size` is ignored: the table's size is the output size).
+pub fn remap(image: &Image, table: &RemapTable, options: &WarpOptions) -> Result<Image, String> {
+    let n = table.width * table.height;
+    if table.map_x.len() != n || table.map_y.len() != n {
+        return Err(format!(
+            "remap table holds {} / {} coordinates, {}×{} needs {n}",
+            table.map_x.len(),
+            table.map_y.len(),
+            table.width,
+            table.height
+        ));
+    }
+    let options = WarpOptions {
+        size: Some((table.width, table.height)),
+        ..*options
+    };
+    warp_with(image, table, &options)
+}
+
 /// Source coordinates of one destination row.
 fn row_coords(t: &Transform, y: usize, xs: &mut [f64], ys: &mut [f64]) {
     let fy = y as f64;
@@ -485,15 +555,15 @@ fn round_small(x: f64) -> i64 {
     ((x + MAGIC) - MAGIC) as i64
 }
 
-fn run<T: Sample>(src: &[T], g: &Geo, t: &Transform, o: &WarpOptions) -> Vec<T> {
+fn run<T: Sample, C: SourceCoords>(src: &[T], g: &Geo, t: &C, o: &WarpOptions) -> Vec<T> {
     match o.interpolation {
         WarpInterpolation::Nearest => run_nearest(src, g, t, o),
-        WarpInterpolation::Bilinear => run_taps::<T, 2>(src, g, t, o),
-        WarpInterpolation::Bicubic => run_taps::<T, 4>(src, g, t, o),
+        WarpInterpolation::Bilinear => run_taps::<T, C, 2>(src, g, t, o),
+        WarpInterpolation::Bicubic => run_taps::<T, C, 4>(src, g, t, o),
     }
 }
 
-fn run_nearest<T: Sample>(src: &[T], g: &Geo, t: &Transform, o: &WarpOptions) -> Vec<T> {
+fn run_nearest<T: Sample, C: SourceCoords>(src: &[T], g: &Geo, t: &C, o: &WarpOptions) -> Vec<T> {
     let (w, h, c) = (g.w, g.h, g.c);
     let n = g.dw * c;
     let mut dst = ocellus_engine::buffer::zeroed::<T>(n * g.dh);
@@ -504,7 +574,7 @@ fn run_nearest<T: Sample>(src: &[T], g: &Geo, t: &Transform, o: &WarpOptions) ->
     dst.par_chunks_mut(n).enumerate().for_each(|(y, out)| {
         let mut xs = vec![0f64; g.dw];
         let mut ys = vec![0f64; g.dw];
-        row_coords(t, y, &mut xs, &mut ys);
+        t.row(y, &mut xs, &mut ys);
         for ((px, &fx), &fy) in out.chunks_exact_mut(c).zip(&xs).zip(&ys) {
             let sx = round_small(fx.clamp(-COORD_LIMIT, COORD_LIMIT)) as isize;
             let sy = round_small(fy.clamp(-COORD_LIMIT, COORD_LIMIT)) as isize;
@@ -520,10 +590,10 @@ fn run_nearest<T: Sample>(src: &[T], g: &Geo, t: &Transform, o: &WarpOptions) ->
     dst
 }
 
-fn run_taps<T: Sample, const TAPS: usize>(
+fn run_taps<T: Sample, C: SourceCoords, const TAPS: usize>(
     src: &[T],
     g: &Geo,
-    t: &Transform,
+    t: &C,
     o: &WarpOptions,
 ) -> Vec<T> {
     let (w, h, c) = (g.w, g.h, g.c);
@@ -538,7 +608,7 @@ fn run_taps<T: Sample, const TAPS: usize>(
     dst.par_chunks_mut(n).enumerate().for_each(|(y, out)| {
         let mut xs = vec![0f64; g.dw];
         let mut ys = vec![0f64; g.dw];
-        row_coords(t, y, &mut xs, &mut ys);
+        t.row(y, &mut xs, &mut ys);
         for ((px, &fx), &fy) in out.chunks_exact_mut(c).zip(&xs).zip(&ys) {
             let (fx, fy) = (
                 fx.clamp(-COORD_LIMIT, COORD_LIMIT),

@@ -4,10 +4,14 @@
 //! Every estimator implements [`robust::Estimator`] (`MIN_SAMPLES`, `fit`, `residuals`), the way
 //! COLMAP's estimators do, so one RANSAC family (RANSAC, MSAC, LO-RANSAC, PROSAC) drives them all.
 
+pub mod calibrate;
+pub mod camera;
 pub mod fundamental;
 pub mod homography;
 pub mod lm;
+pub mod projection;
 pub mod ransac;
+pub mod rectify;
 pub mod robust;
 pub mod shapes;
 pub mod transforms;
