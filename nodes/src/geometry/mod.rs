@@ -5,3 +5,7 @@
 //! COLMAP's estimators do, so one RANSAC family (RANSAC, MSAC, LO-RANSAC, PROSAC) drives them all.
 
 pub mod robust;
+pub mod pose_util;
+pub mod triangulate;
+pub mod essential;
+pub mod pnp;
