@@ -111,6 +111,11 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<matching::patch::PatchMatch>()?;
     registry.register::<matching::draw::DrawMatches>()?;
     registry.register::<analyze::match_accuracy::MatchAccuracy>()?;
+    registry.register::<geometry::essential::DecomposeEssential>()?;
+    registry.register::<geometry::decompose::DecomposeHomography>()?;
+    registry.register::<geometry::pnp::SolvePnp>()?;
+    registry.register::<geometry::triangulate::Triangulate>()?;
+    registry.register::<geometry::servo::VisualServoStep>()?;
     Ok(())
 }
 

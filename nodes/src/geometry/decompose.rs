@@ -51,10 +51,7 @@ pub fn decompose_homography(
     if !h.iter().all(|v| v.is_finite()) {
         return Err("homography has non-finite entries".into());
     }
-    let k2i = k2
-        .matrix()
-        .try_inverse()
-        .ok_or("intrinsics are singular")?;
+    let k2i = k2.matrix().try_inverse().ok_or("intrinsics are singular")?;
     let mut hn = k2i * h * k1.matrix();
     let svd = hn.svd(false, true);
     let s = svd.singular_values;
@@ -97,7 +94,12 @@ pub fn decompose_homography(
         };
         let n = v2.cross(&u).normalize();
         let t = (hn - r) * n;
-        if !(r.iter().chain(t.iter()).chain(n.iter()).all(|x| x.is_finite())) {
+        if !(r
+            .iter()
+            .chain(t.iter())
+            .chain(n.iter())
+            .all(|x| x.is_finite()))
+        {
             continue;
         }
         out.push(HomographySolution { r, t, n });
@@ -150,10 +152,7 @@ pub fn visible_solutions(
 /// `(X, Y)` (`Z = 0`) to pixels: `K⁻¹H ∼ [r₁ r₂ t]`, scaled by the mean length of the first two
 /// columns, signed so the plane is in front (`t_z > 0`), and `[r₁ r₂ r₁×r₂]` projected onto
 /// SO(3) (Zhang 2000, §3.1). Errors on a degenerate `H`.
-pub fn plane_pose_from_homography(
-    h: &Matrix3<f64>,
-    k: &Intrinsics,
-) -> Result<CameraPose, String> {
+pub fn plane_pose_from_homography(h: &Matrix3<f64>, k: &Intrinsics) -> Result<CameraPose, String> {
     if !h.iter().all(|v| v.is_finite()) {
         return Err("homography has non-finite entries".into());
     }
@@ -201,10 +200,26 @@ pub fn homography_dlt(x1: &[Vector2<f64>], x2: &[Vector2<f64>]) -> Option<Matrix
         let p = t1 * Vector3::new(a.x, a.y, 1.0);
         let q = t2 * Vector3::new(b.x, b.y, 1.0);
         let r1 = SMatrix::<f64, 9, 1>::from_row_slice(&[
-            0.0, 0.0, 0.0, -p.x, -p.y, -1.0, q.y * p.x, q.y * p.y, q.y,
+            0.0,
+            0.0,
+            0.0,
+            -p.x,
+            -p.y,
+            -1.0,
+            q.y * p.x,
+            q.y * p.y,
+            q.y,
         ]);
         let r2 = SMatrix::<f64, 9, 1>::from_row_slice(&[
-            p.x, p.y, 1.0, 0.0, 0.0, 0.0, -q.x * p.x, -q.x * p.y, -q.x,
+            p.x,
+            p.y,
+            1.0,
+            0.0,
+            0.0,
+            0.0,
+            -q.x * p.x,
+            -q.x * p.y,
+            -q.x,
         ]);
         ata += r1 * r1.transpose() + r2 * r2.transpose();
     }
@@ -265,8 +280,7 @@ pub struct DecomposeHomography {
 impl Op for DecomposeHomography {
     type Params = DecomposeHomographyParams;
     const ID: &'static str = "geometry.decompose_homography";
-    const SUMMARY: &'static str =
-        "Decomposes a plane-induced homography into rotation, scaled translation and normal candidates.";
+    const SUMMARY: &'static str = "Decomposes a plane-induced homography into rotation, scaled translation and normal candidates.";
     const DOC: &'static str = r#"
 Decomposes `homography` (pixels, `x2 ∼ H x1`, induced by a plane seen from two cameras with
 intrinsics `camera`, and `camera2` for the second view when different) into up to four
@@ -291,13 +305,29 @@ Example:
     fn inputs() -> Vec<PortSpec> {
         vec![
             PortSpec::new("homography", PortType::Matrix, "3×3 homography, pixels."),
-            PortSpec::new("camera", PortType::Camera, "Intrinsics of camera 1 (and 2)."),
-            PortSpec::new("camera2", PortType::Camera, "Intrinsics of camera 2, if different.")
-                .optional(),
-            PortSpec::new("points1", PortType::Points2D, "Reference points in image 1, px.")
-                .optional(),
-            PortSpec::new("points2", PortType::Points2D, "Matching points in image 2, px.")
-                .optional(),
+            PortSpec::new(
+                "camera",
+                PortType::Camera,
+                "Intrinsics of camera 1 (and 2).",
+            ),
+            PortSpec::new(
+                "camera2",
+                PortType::Camera,
+                "Intrinsics of camera 2, if different.",
+            )
+            .optional(),
+            PortSpec::new(
+                "points1",
+                PortType::Points2D,
+                "Reference points in image 1, px.",
+            )
+            .optional(),
+            PortSpec::new(
+                "points2",
+                PortType::Points2D,
+                "Matching points in image 2, px.",
+            )
+            .optional(),
         ]
     }
 
@@ -308,7 +338,11 @@ Example:
                 PortType::Pose.list_of(),
                 "Candidates camera2_from_camera1 (translation divided by the plane distance).",
             ),
-            PortSpec::new("normals", PortType::Matrix, "k×3 plane normals in camera 1."),
+            PortSpec::new(
+                "normals",
+                PortType::Matrix,
+                "k×3 plane normals in camera 1.",
+            ),
         ]
     }
 
@@ -451,7 +485,12 @@ mod tests {
         let r = *Rotation3::from_scaled_axis(Vector3::new(0.4, -0.3, 0.2)).matrix();
         let t = Vector3::new(0.05, -0.02, 0.6);
         let s = 0.1;
-        let obj = [[-s / 2.0, s / 2.0], [s / 2.0, s / 2.0], [s / 2.0, -s / 2.0], [-s / 2.0, -s / 2.0]];
+        let obj = [
+            [-s / 2.0, s / 2.0],
+            [s / 2.0, s / 2.0],
+            [s / 2.0, -s / 2.0],
+            [-s / 2.0, -s / 2.0],
+        ];
         let corners: [[f64; 2]; 4] =
             std::array::from_fn(|i| kk.project(&(r * Vector3::new(obj[i][0], obj[i][1], 0.0) + t)));
         for refine in [false, true] {
@@ -460,7 +499,9 @@ mod tests {
             assert!((p.t - t).norm() < 1e-9);
         }
         // Homography form: H = K [r1 r2 t], any scale.
-        let h = kk.matrix() * Matrix3::from_columns(&[r.column(0).into_owned(), r.column(1).into_owned(), t]) * -2.5;
+        let h = kk.matrix()
+            * Matrix3::from_columns(&[r.column(0).into_owned(), r.column(1).into_owned(), t])
+            * -2.5;
         let p = plane_pose_from_homography(&h, &kk).unwrap();
         assert!(rotation_angle_deg(&p.r, &r) < 1e-9 && (p.t - t).norm() < 1e-12);
         assert!(marker_pose(&[[0.0, 0.0]; 4], s, &kk, true).is_err());
@@ -502,11 +543,25 @@ mod tests {
             height: 480,
             params: vec![700.0, 720.0, 320.0, 240.0],
         };
-        let hv = Value::Matrix(Arc::new(Matrix::new(3, 3, h.transpose().as_slice().to_vec()).unwrap()));
-        let ctx = RunContext { node: "h".into(), threads: 1, element: None };
-        let values = vec![Some(hv.clone()), Some(Value::Camera(Arc::new(cam.clone()))), None, None, None];
+        let hv = Value::Matrix(Arc::new(
+            Matrix::new(3, 3, h.transpose().as_slice().to_vec()).unwrap(),
+        ));
+        let ctx = RunContext {
+            node: "h".into(),
+            threads: 1,
+            element: None,
+        };
+        let values = vec![
+            Some(hv.clone()),
+            Some(Value::Camera(Arc::new(cam.clone()))),
+            None,
+            None,
+            None,
+        ];
         let mut out = op.run(&ctx, &Inputs::new(&specs, &values)).unwrap();
-        let Some(Value::List(l)) = out.take("poses") else { panic!() };
+        let Some(Value::List(l)) = out.take("poses") else {
+            panic!()
+        };
         assert_eq!(l.items.len(), 4);
         let values = vec![
             Some(hv),
@@ -516,7 +571,9 @@ mod tests {
             Some(Value::Points2D(Arc::new(p2))),
         ];
         let mut out = op.run(&ctx, &Inputs::new(&specs, &values)).unwrap();
-        let Some(Value::Matrix(m)) = out.take("normals") else { panic!() };
+        let Some(Value::Matrix(m)) = out.take("normals") else {
+            panic!()
+        };
         assert!(m.rows >= 1 && m.rows <= 2);
     }
 }

@@ -448,7 +448,17 @@ fn normalizing_transform(pts: &[Vector2<f64>]) -> Option<Matrix3<f64>> {
         return None;
     }
     let s = std::f64::consts::SQRT_2 / d;
-    Some(Matrix3::new(s, 0.0, -s * c.x, 0.0, s, -s * c.y, 0.0, 0.0, 1.0))
+    Some(Matrix3::new(
+        s,
+        0.0,
+        -s * c.x,
+        0.0,
+        s,
+        -s * c.y,
+        0.0,
+        0.0,
+        1.0,
+    ))
 }
 
 /// Projects a matrix onto the essential manifold (singular values `(1, 1, 0)`); `None` if its
@@ -477,7 +487,11 @@ pub fn essential_eight_point(x1: &[Vector2<f64>], x2: &[Vector2<f64>]) -> Option
     if n < 8 || x2.len() != n {
         return None;
     }
-    if x1.iter().chain(x2).any(|p| !p.iter().all(|v| v.is_finite())) {
+    if x1
+        .iter()
+        .chain(x2)
+        .any(|p| !p.iter().all(|v| v.is_finite()))
+    {
         return None;
     }
     let t1 = normalizing_transform(x1)?;
@@ -492,11 +506,7 @@ pub fn essential_eight_point(x1: &[Vector2<f64>], x2: &[Vector2<f64>]) -> Option
             a[(i, j)] = *v;
         }
     }
-    let r = if rows > 9 {
-        a.qr().r()
-    } else {
-        a
-    };
+    let r = if rows > 9 { a.qr().r() } else { a };
     let r9 = SMatrix::<f64, 9, 9>::from_fn(|i, j| if i < r.nrows() { r[(i, j)] } else { 0.0 });
     let svd = r9.svd(false, true);
     let vt = svd.v_t?;
@@ -756,15 +766,27 @@ Example:
         vec![
             PortSpec::new("essential", PortType::Matrix, "3×3 essential matrix."),
             PortSpec::new("points1", PortType::Points2D, "Points in image 1, px."),
-            PortSpec::new("points2", PortType::Points2D, "Matching points in image 2, px."),
+            PortSpec::new(
+                "points2",
+                PortType::Points2D,
+                "Matching points in image 2, px.",
+            ),
             PortSpec::new("camera", PortType::Camera, "Intrinsics of both images."),
         ]
     }
 
     fn outputs() -> Vec<PortSpec> {
         vec![
-            PortSpec::new("pose", PortType::Pose, "camera2_from_camera1, unit translation."),
-            PortSpec::new("inliers", PortType::Integer, "Points passing the cheirality test."),
+            PortSpec::new(
+                "pose",
+                PortType::Pose,
+                "camera2_from_camera1, unit translation.",
+            ),
+            PortSpec::new(
+                "inliers",
+                PortType::Integer,
+                "Points passing the cheirality test.",
+            ),
             PortSpec::new("mask", PortType::Matrix, "N×1, 1 for passing points."),
         ]
     }
@@ -788,8 +810,8 @@ impl Operator for DecomposeEssential {
         let p2 = input_points2(inputs, "points2")?;
         let n1: Vec<[f64; 2]> = p1.iter().map(|p| k.normalize(*p).into()).collect();
         let n2: Vec<[f64; 2]> = p2.iter().map(|p| k.normalize(*p).into()).collect();
-        let pose = decompose_essential(&e, &n1, &n2, self.min_parallax_deg)
-            .map_err(OpError::failed)?;
+        let pose =
+            decompose_essential(&e, &n1, &n2, self.min_parallax_deg).map_err(OpError::failed)?;
         let mask: Vec<f64> = pose.mask.iter().map(|&b| f64::from(u8::from(b))).collect();
         Ok(Outputs::new()
             .with("pose", Value::Pose(pose_from_rt(&pose.r, &pose.t)))
@@ -803,8 +825,8 @@ mod tests {
     use super::*;
     use nalgebra::Rotation3;
     use ocellus_engine::value::{Camera, CameraModel, Matrix};
-    use std::sync::Arc;
     use proptest::prelude::*;
+    use std::sync::Arc;
 
     use crate::geometry::pose_util::{rotation_angle_deg, vector_angle_deg};
 
@@ -820,15 +842,25 @@ mod tests {
         seed: u64,
         n: usize,
         planar: f64,
-    ) -> (Matrix3<f64>, Vector3<f64>, Vec<Vector2<f64>>, Vec<Vector2<f64>>) {
+    ) -> (
+        Matrix3<f64>,
+        Vector3<f64>,
+        Vec<Vector2<f64>>,
+        Vec<Vector2<f64>>,
+    ) {
         let mut s = seed;
-        let r = *Rotation3::from_scaled_axis(Vector3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 0.3)
-            .matrix();
+        let r =
+            *Rotation3::from_scaled_axis(Vector3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 0.3)
+                .matrix();
         let t = Vector3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s) * 0.3).normalize();
         let mut x1 = Vec::new();
         let mut x2 = Vec::new();
         while x1.len() < n {
-            let p = Vector3::new(lcg(&mut s) * 2.0, lcg(&mut s) * 2.0, 6.0 + lcg(&mut s) * 2.0 * planar);
+            let p = Vector3::new(
+                lcg(&mut s) * 2.0,
+                lcg(&mut s) * 2.0,
+                6.0 + lcg(&mut s) * 2.0 * planar,
+            );
             let q = r * p + t;
             if q.z > 0.5 {
                 x1.push(Vector2::new(p.x / p.z, p.y / p.z));
@@ -849,9 +881,15 @@ mod tests {
         for seed in 0..50 {
             let (r, t, x1, x2) = scene(seed, 5, 1.0);
             let e_true = essential_from_pose(&r, &t);
-            let sols =
-                essential_five_point(&std::array::from_fn(|i| x1[i]), &std::array::from_fn(|i| x2[i]));
-            assert!(!sols.is_empty() && sols.len() <= 10, "seed {seed}: {}", sols.len());
+            let sols = essential_five_point(
+                &std::array::from_fn(|i| x1[i]),
+                &std::array::from_fn(|i| x2[i]),
+            );
+            assert!(
+                !sols.is_empty() && sols.len() <= 10,
+                "seed {seed}: {}",
+                sols.len()
+            );
             let best = sols
                 .iter()
                 .map(|e| same_up_to_scale(e, &e_true))
@@ -909,7 +947,10 @@ mod tests {
                 Vector2::new(q.x / q.z, q.y / q.z)
             })
             .collect();
-        for e in essential_five_point(&std::array::from_fn(|i| x1[i]), &std::array::from_fn(|i| x2r[i])) {
+        for e in essential_five_point(
+            &std::array::from_fn(|i| x1[i]),
+            &std::array::from_fn(|i| x2r[i]),
+        ) {
             assert!(e.iter().all(|v| v.is_finite()));
         }
         let _ = x2;
@@ -931,7 +972,11 @@ mod tests {
     #[test]
     fn estimator_plugs_in() {
         let (r, t, x1, x2) = scene(7, 40, 1.0);
-        let data: Vec<NormalizedPair> = x1.iter().zip(&x2).map(|(a, b)| ((*a).into(), (*b).into())).collect();
+        let data: Vec<NormalizedPair> = x1
+            .iter()
+            .zip(&x2)
+            .map(|(a, b)| ((*a).into(), (*b).into()))
+            .collect();
         let est = EssentialEstimator { focal_px: 500.0 };
         let models = est.fit(&data[..5]);
         let truth = essential_from_pose(&r, &t);
@@ -986,7 +1031,9 @@ mod tests {
         let op = DecomposeEssential::new(DecomposeEssentialParams::default()).unwrap();
         let specs = DecomposeEssential::inputs();
         let values = vec![
-            Some(Value::Matrix(Arc::new(Matrix::new(3, 3, e.transpose().as_slice().to_vec()).unwrap()))),
+            Some(Value::Matrix(Arc::new(
+                Matrix::new(3, 3, e.transpose().as_slice().to_vec()).unwrap(),
+            ))),
             Some(Value::Points2D(Arc::new(p1))),
             Some(Value::Points2D(Arc::new(p2))),
             Some(Value::Camera(Arc::new(Camera {
@@ -996,9 +1043,15 @@ mod tests {
                 params: vec![500.0, 320.0, 240.0],
             }))),
         ];
-        let ctx = RunContext { node: "e".into(), threads: 1, element: None };
+        let ctx = RunContext {
+            node: "e".into(),
+            threads: 1,
+            element: None,
+        };
         let mut out = op.run(&ctx, &Inputs::new(&specs, &values)).unwrap();
-        let Some(Value::Pose(p)) = out.take("pose") else { panic!() };
+        let Some(Value::Pose(p)) = out.take("pose") else {
+            panic!()
+        };
         let (r2, t2) = crate::geometry::pose_util::rt_from_pose(&p).unwrap();
         assert!(rotation_angle_deg(&r2, &r) < 1e-6 && vector_angle_deg(&t2, &t) < 1e-6);
         assert!(matches!(out.take("inliers"), Some(Value::Integer(20))));

@@ -4,8 +4,10 @@
 //! Every estimator implements [`robust::Estimator`] (`MIN_SAMPLES`, `fit`, `residuals`), the way
 //! COLMAP's estimators do, so one RANSAC family (RANSAC, MSAC, LO-RANSAC, PROSAC) drives them all.
 
-pub mod robust;
-pub mod pose_util;
-pub mod triangulate;
+pub mod decompose;
 pub mod essential;
 pub mod pnp;
+pub mod pose_util;
+pub mod robust;
+pub mod servo;
+pub mod triangulate;

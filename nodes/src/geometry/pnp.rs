@@ -199,7 +199,11 @@ pub fn p3p(bearings: &[Vector3<f64>; 3], world: &[Vector3<f64>; 3]) -> Vec<Camer
     let (sp, sn) = (ev[ip], ev[ineg]);
     let ep: Vector3<f64> = eig.eigenvectors.column(ip).into_owned();
     let en: Vector3<f64> = eig.eigenvectors.column(ineg).into_owned();
-    let s = if sp > 0.0 { (-sn / sp).max(0.0).sqrt() } else { 0.0 };
+    let s = if sp > 0.0 {
+        (-sn / sp).max(0.0).sqrt()
+    } else {
+        0.0
+    };
     let a = [a12, a13, a23];
     let ms = [m12, m13, m23];
     let mut out: Vec<CameraPose> = Vec::with_capacity(4);
@@ -410,7 +414,8 @@ pub fn epnp(k: &Intrinsics, pixels: &[[f64; 2]], world: &[[f64; 3]]) -> Option<C
     let e12 = mtm.symmetric_eigen();
     let mut order: [usize; 12] = std::array::from_fn(|i| i);
     order.sort_by(|&i, &j| e12.eigenvalues[i].total_cmp(&e12.eigenvalues[j]));
-    let v: [SMatrix<f64, 12, 1>; 4] = std::array::from_fn(|i| e12.eigenvectors.column(order[i]).into_owned());
+    let v: [SMatrix<f64, 12, 1>; 4] =
+        std::array::from_fn(|i| e12.eigenvectors.column(order[i]).into_owned());
     // L (6×10) over [β11, β12, β13, β14, β22, β23, β24, β33, β34, β44] and ρ.
     let mut l = SMatrix::<f64, 6, 10>::zeros();
     let mut rho = SMatrix::<f64, 6, 1>::zeros();
@@ -453,14 +458,31 @@ pub fn epnp(k: &Intrinsics, pixels: &[[f64; 2]], world: &[[f64; 3]]) -> Option<C
     // N = 2: [β11, β12, β22].
     if let Some(s) = lsq(&[idx(0, 0), idx(0, 1), idx(1, 1)]) {
         let b1 = s[0].abs().sqrt();
-        let b2 = s[2].abs().sqrt() * if s[1] * s[0].signum() < 0.0 { -1.0 } else { 1.0 };
+        let b2 = s[2].abs().sqrt()
+            * if s[1] * s[0].signum() < 0.0 {
+                -1.0
+            } else {
+                1.0
+            };
         inits.push([b1, b2, 0.0, 0.0]);
     }
     // N = 3: [β11, β12, β22, β13, β23, β33].
-    if let Some(s) = lsq(&[idx(0, 0), idx(0, 1), idx(1, 1), idx(0, 2), idx(1, 2), idx(2, 2)]) {
+    if let Some(s) = lsq(&[
+        idx(0, 0),
+        idx(0, 1),
+        idx(1, 1),
+        idx(0, 2),
+        idx(1, 2),
+        idx(2, 2),
+    ]) {
         let b1 = s[0].abs().sqrt();
         let sg = |x: f64| if x * s[0].signum() < 0.0 { -1.0 } else { 1.0 };
-        inits.push([b1, sg(s[1]) * s[2].abs().sqrt(), sg(s[3]) * s[5].abs().sqrt(), 0.0]);
+        inits.push([
+            b1,
+            sg(s[1]) * s[2].abs().sqrt(),
+            sg(s[3]) * s[5].abs().sqrt(),
+            0.0,
+        ]);
     }
     // N = 4 (OpenCV's approximation): [β11, β12, β13, β14].
     if let Some(s) = lsq(&[idx(0, 0), idx(0, 1), idx(0, 2), idx(0, 3)]) {
@@ -786,11 +808,14 @@ pub fn solve_pnp(
     }
     let pose = match method {
         PnpMethod::P3p => p3p_best(k, pixels, world, spread_triple(pixels)),
-        PnpMethod::Epnp => epnp(k, pixels, world)
-            .or_else(|| p3p_best(k, pixels, world, spread_triple(pixels))),
+        PnpMethod::Epnp => {
+            epnp(k, pixels, world).or_else(|| p3p_best(k, pixels, world, spread_triple(pixels)))
+        }
         PnpMethod::Dlt => pnp_dlt(k, pixels, world),
     }
-    .ok_or_else(|| format!("{method:?}: degenerate configuration (collinear or coplanar points?)"))?;
+    .ok_or_else(|| {
+        format!("{method:?}: degenerate configuration (collinear or coplanar points?)")
+    })?;
     Ok(if refine {
         refine_pose(k, pixels, world, &pose, 50)
     } else {
@@ -999,7 +1024,10 @@ impl Operator for SolvePnp {
         let n = errs.len().max(1) as f64;
         let fin = |v: f64| if v.is_finite() { v } else { -1.0 };
         m.insert("count".into(), errs.len() as f64);
-        m.insert("rms_error_px".into(), fin((errs.iter().sum::<f64>() / n).sqrt()));
+        m.insert(
+            "rms_error_px".into(),
+            fin((errs.iter().sum::<f64>() / n).sqrt()),
+        );
         m.insert(
             "max_error_px".into(),
             fin(errs.iter().fold(0.0f64, |a, &b| a.max(b)).sqrt()),
@@ -1034,15 +1062,20 @@ mod tests {
     /// A random pose and `n` points in front of it (camera coordinates z in [4, 8]).
     fn scene(seed: u64, n: usize, flat: f64) -> (CameraPose, Vec<[f64; 2]>, Vec<[f64; 3]>) {
         let mut s = seed;
-        let r = *Rotation3::from_scaled_axis(Vector3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 2.0)
-            .matrix();
+        let r =
+            *Rotation3::from_scaled_axis(Vector3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 2.0)
+                .matrix();
         let t = Vector3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s));
         let pose = CameraPose { r, t };
         let k = kk();
         let mut px = Vec::new();
         let mut w = Vec::new();
         for _ in 0..n {
-            let c = Vector3::new(lcg(&mut s) * 2.0, lcg(&mut s) * 1.5, 6.0 + 2.0 * flat * lcg(&mut s));
+            let c = Vector3::new(
+                lcg(&mut s) * 2.0,
+                lcg(&mut s) * 1.5,
+                6.0 + 2.0 * flat * lcg(&mut s),
+            );
             let x = r.transpose() * (c - t);
             px.push(k.project(&c));
             w.push([x.x, x.y, x.z]);
@@ -1066,7 +1099,10 @@ mod tests {
             let wv: [Vector3<f64>; 3] = std::array::from_fn(|i| Vector3::from(w[i]));
             let sols = p3p(&b, &wv);
             assert!(!sols.is_empty() && sols.len() <= 4, "seed {seed}");
-            assert!(sols.iter().any(|s| close(s, &pose, 1e-9)), "seed {seed}: {sols:?} vs {pose:?}");
+            assert!(
+                sols.iter().any(|s| close(s, &pose, 1e-9)),
+                "seed {seed}: {sols:?} vs {pose:?}"
+            );
             for s in &sols {
                 for i in 0..3 {
                     assert!(reprojection_sq(&k, s, px[i], w[i]) < 1e-12);
@@ -1105,7 +1141,11 @@ mod tests {
     fn degenerate_inputs() {
         let k = kk();
         // Collinear world points.
-        let w = [Vector3::new(0.0, 0.0, 5.0), Vector3::new(1.0, 0.0, 5.0), Vector3::new(2.0, 0.0, 5.0)];
+        let w = [
+            Vector3::new(0.0, 0.0, 5.0),
+            Vector3::new(1.0, 0.0, 5.0),
+            Vector3::new(2.0, 0.0, 5.0),
+        ];
         let b = w.map(|p| p / p.z);
         assert!(p3p(&b, &w).is_empty());
         assert!(p3p(&[Vector3::zeros(); 3], &w).is_empty());
@@ -1127,7 +1167,9 @@ mod tests {
     fn cubic_roots_hand_computed() {
         let mut r = cubic_roots(1.0, -6.0, 11.0, -6.0);
         r.sort_by(f64::total_cmp);
-        assert!((r[0] - 1.0).abs() < 1e-12 && (r[1] - 2.0).abs() < 1e-12 && (r[2] - 3.0).abs() < 1e-12);
+        assert!(
+            (r[0] - 1.0).abs() < 1e-12 && (r[1] - 2.0).abs() < 1e-12 && (r[2] - 3.0).abs() < 1e-12
+        );
         assert_eq!(cubic_roots(0.0, 0.0, 2.0, -4.0), vec![2.0]);
         assert!(cubic_roots(0.0, 0.0, 0.0, 0.0).is_empty());
     }
@@ -1144,7 +1186,11 @@ mod tests {
         p3.residuals(&pose, &data, &mut res);
         assert!(res.iter().all(|&r| r < 1e-16));
         assert!(close(&EpnpEstimator { k }.fit(&data[..6])[0], &pose, 1e-8));
-        assert!(close(&DltPnpEstimator { k }.fit(&data[..6])[0], &pose, 1e-8));
+        assert!(close(
+            &DltPnpEstimator { k }.fit(&data[..6])[0],
+            &pose,
+            1e-8
+        ));
         let collinear = [
             ([0.0, 0.0], [0.0, 0.0, 1.0]),
             ([0.0, 0.0], [1.0, 0.0, 1.0]),
@@ -1214,18 +1260,33 @@ mod tests {
             params: vec![800.0, 790.0, 320.0, 240.0],
         };
         for method in [PnpMethod::P3p, PnpMethod::Epnp, PnpMethod::Dlt] {
-            let op = SolvePnp::new(SolvePnpParams { method, refine: true }).unwrap();
+            let op = SolvePnp::new(SolvePnpParams {
+                method,
+                refine: true,
+            })
+            .unwrap();
             let specs = SolvePnp::inputs();
             let values = vec![
-                Some(Value::Matrix(Arc::new(Matrix::new(10, 3, w.iter().flatten().copied().collect()).unwrap()))),
+                Some(Value::Matrix(Arc::new(
+                    Matrix::new(10, 3, w.iter().flatten().copied().collect()).unwrap(),
+                ))),
                 Some(Value::Points2D(Arc::new(px.clone()))),
                 Some(Value::Camera(Arc::new(cam.clone()))),
             ];
-            let ctx = RunContext { node: "p".into(), threads: 1, element: None };
+            let ctx = RunContext {
+                node: "p".into(),
+                threads: 1,
+                element: None,
+            };
             let mut out = op.run(&ctx, &Inputs::new(&specs, &values)).unwrap();
-            let Some(Value::Pose(p)) = out.take("pose") else { panic!() };
+            let Some(Value::Pose(p)) = out.take("pose") else {
+                panic!()
+            };
             let (r, t) = crate::geometry::pose_util::rt_from_pose(&p).unwrap();
-            assert!(rotation_angle_deg(&r, &pose.r) < 1e-7 && (t - pose.t).norm() < 1e-8, "{method:?}");
+            assert!(
+                rotation_angle_deg(&r, &pose.r) < 1e-7 && (t - pose.t).norm() < 1e-8,
+                "{method:?}"
+            );
         }
     }
 }

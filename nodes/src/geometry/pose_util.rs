@@ -114,7 +114,11 @@ pub fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
 /// A pose from a rotation matrix and a translation.
 pub fn pose_from_rt(r: &Matrix3<f64>, t: &Vector3<f64>) -> Pose {
     let q = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(*r));
-    let q = if q.w < 0.0 { -q.into_inner() } else { q.into_inner() };
+    let q = if q.w < 0.0 {
+        -q.into_inner()
+    } else {
+        q.into_inner()
+    };
     Pose {
         rotation: [q.w, q.i, q.j, q.k],
         translation: [t.x, t.y, t.z],
@@ -137,8 +141,17 @@ pub fn rt_from_pose(pose: &Pose) -> Result<(Matrix3<f64>, Vector3<f64>), String>
 
 /// Angle of the rotation `a⁻¹b`, degrees.
 pub fn rotation_angle_deg(a: &Matrix3<f64>, b: &Matrix3<f64>) -> f64 {
-    let c = (((a.transpose() * b).trace() - 1.0) / 2.0).clamp(-1.0, 1.0);
-    c.acos().to_degrees()
+    // atan2(sin θ, cos θ) stays accurate for small angles, where acos loses half the digits.
+    let m = a.transpose() * b;
+    let s = 0.5
+        * Vector3::new(
+            m[(2, 1)] - m[(1, 2)],
+            m[(0, 2)] - m[(2, 0)],
+            m[(1, 0)] - m[(0, 1)],
+        )
+        .norm();
+    let c = (m.trace() - 1.0) / 2.0;
+    s.atan2(c).to_degrees()
 }
 
 /// Angle between two vectors, degrees (0 when either is zero).

@@ -195,16 +195,14 @@ pub fn fundamental_from_views(v1: &View, v2: &View) -> Matrix3<f64> {
     let r = v2.r * v1.r.transpose();
     let t = v2.t - r * v1.t;
     let e = skew(&t) * r;
-    let k1i = v1
-        .k
-        .matrix()
-        .try_inverse()
-        .unwrap_or_else(Matrix3::identity);
-    let k2i = v2
-        .k
-        .matrix()
-        .try_inverse()
-        .unwrap_or_else(Matrix3::identity);
+    let k1i =
+        v1.k.matrix()
+            .try_inverse()
+            .unwrap_or_else(Matrix3::identity);
+    let k2i =
+        v2.k.matrix()
+            .try_inverse()
+            .unwrap_or_else(Matrix3::identity);
     k2i.transpose() * e * k1i
 }
 
@@ -263,9 +261,8 @@ pub fn triangulate_pair(
 ) -> Triangulated {
     let h = match method {
         TriangulationMethod::Dlt => triangulate_dlt(&[*v1, *v2], &[p1, p2]),
-        TriangulationMethod::Midpoint => {
-            triangulate_midpoint(v1, v2, p1, p2).map(|m| Vector4::new(m.x, m.y, m.z, 1.0).normalize())
-        }
+        TriangulationMethod::Midpoint => triangulate_midpoint(v1, v2, p1, p2)
+            .map(|m| Vector4::new(m.x, m.y, m.z, 1.0).normalize()),
         TriangulationMethod::Optimal => {
             let (c1, c2) = optimal_correction(f, p1, p2);
             triangulate_dlt(&[*v1, *v2], &[c1, c2])
@@ -336,10 +333,7 @@ pub fn evaluate(
             let var = (ray.transpose() * cov * ray)[(0, 0)].max(0.0);
             (cov, var.sqrt())
         }
-        _ => (
-            Matrix3::from_diagonal_element(f64::INFINITY),
-            f64::INFINITY,
-        ),
+        _ => (Matrix3::from_diagonal_element(f64::INFINITY), f64::INFINITY),
     };
     Triangulated {
         homogeneous: h,
@@ -442,17 +436,37 @@ Example:
         vec![
             PortSpec::new("pose1", PortType::Pose, "Camera 1 pose, camera_from_world."),
             PortSpec::new("pose2", PortType::Pose, "Camera 2 pose, camera_from_world."),
-            PortSpec::new("camera", PortType::Camera, "Intrinsics of camera 1 (and 2)."),
-            PortSpec::new("camera2", PortType::Camera, "Intrinsics of camera 2, if different.")
-                .optional(),
-            PortSpec::new("points1", PortType::Points2D, "Observations in image 1, px."),
-            PortSpec::new("points2", PortType::Points2D, "Observations in image 2, px."),
+            PortSpec::new(
+                "camera",
+                PortType::Camera,
+                "Intrinsics of camera 1 (and 2).",
+            ),
+            PortSpec::new(
+                "camera2",
+                PortType::Camera,
+                "Intrinsics of camera 2, if different.",
+            )
+            .optional(),
+            PortSpec::new(
+                "points1",
+                PortType::Points2D,
+                "Observations in image 1, px.",
+            ),
+            PortSpec::new(
+                "points2",
+                PortType::Points2D,
+                "Observations in image 2, px.",
+            ),
         ]
     }
 
     fn outputs() -> Vec<PortSpec> {
         vec![
-            PortSpec::new("points", PortType::PointCloud, "Triangulated points, world frame."),
+            PortSpec::new(
+                "points",
+                PortType::PointCloud,
+                "Triangulated points, world frame.",
+            ),
             PortSpec::new(
                 "per_point",
                 PortType::Matrix,
@@ -503,8 +517,16 @@ impl Operator for Triangulate {
         };
         let p1 = input_points2(inputs, "points1")?;
         let p2 = input_points2(inputs, "points2")?;
-        let v1 = View { r: r1, t: t1, k: k1 };
-        let v2 = View { r: r2, t: t2, k: k2 };
+        let v1 = View {
+            r: r1,
+            t: t1,
+            k: k1,
+        };
+        let v2 = View {
+            r: r2,
+            t: t2,
+            k: k2,
+        };
         let tri = triangulate_points(&v1, &v2, &p1, &p2, self.method, self.sigma_px)
             .map_err(|e| OpError::input("points2", e))?;
         let n = tri.len();
@@ -513,8 +535,8 @@ impl Operator for Triangulate {
         let mut angles = Vec::new();
         let mut err_sum = 0.0;
         for t in &tri {
-            let valid = t.is_valid(self.min_angle_deg)
-                && self.max_error_px.is_none_or(|m| t.error_px <= m);
+            let valid =
+                t.is_valid(self.min_angle_deg) && self.max_error_px.is_none_or(|m| t.error_px <= m);
             let p = t.point.unwrap_or_else(Vector3::zeros);
             positions.push([p.x as f32, p.y as f32, p.z as f32]);
             let finite_or = |v: f64| if v.is_finite() { v } else { -1.0 };
@@ -581,7 +603,18 @@ pub(crate) mod tests {
         let r2 = *Rotation3::from_scaled_axis(Vector3::new(-0.08, 0.2, 0.05)).matrix();
         let t2 = r2 * (r1.transpose() * t1) + Vector3::new(-1.0, 0.1, 0.05) * baseline * scale;
         // Camera 2 centre = camera 1 centre + R2ᵀ·(−b) offset.
-        (View { r: r1, t: t1, k: k() }, View { r: r2, t: t2, k: k() })
+        (
+            View {
+                r: r1,
+                t: t1,
+                k: k(),
+            },
+            View {
+                r: r2,
+                t: t2,
+                k: k(),
+            },
+        )
     }
 
     fn project(v: &View, x: &Vector3<f64>) -> [f64; 2] {
@@ -621,8 +654,16 @@ pub(crate) mod tests {
     fn hand_computed_midpoint_and_angle() {
         // Two identity-rotation cameras 2 apart along x looking at (1, 0, 2).
         let kk = Intrinsics::new(1.0, 1.0, 0.0, 0.0).unwrap();
-        let v1 = View { r: Matrix3::identity(), t: Vector3::zeros(), k: kk };
-        let v2 = View { r: Matrix3::identity(), t: Vector3::new(-2.0, 0.0, 0.0), k: kk };
+        let v1 = View {
+            r: Matrix3::identity(),
+            t: Vector3::zeros(),
+            k: kk,
+        };
+        let v2 = View {
+            r: Matrix3::identity(),
+            t: Vector3::new(-2.0, 0.0, 0.0),
+            k: kk,
+        };
         let x = Vector3::new(1.0, 0.0, 2.0);
         let t = triangulate_pair(
             &v1,
@@ -670,7 +711,9 @@ pub(crate) mod tests {
             for dy in [-1e-3, 0.0, 1e-3] {
                 for dz in [-1e-2, 0.0, 1e-2] {
                     let y = o + Vector3::new(dx, dy, dz);
-                    assert!(cost(project(&v1, &y), p1) + cost(project(&v2, &y), p2) >= o_cost - 1e-9);
+                    assert!(
+                        cost(project(&v1, &y), p1) + cost(project(&v2, &y), p2) >= o_cost - 1e-9
+                    );
                 }
             }
         }
@@ -716,10 +759,20 @@ pub(crate) mod tests {
         assert!(triangulate_dlt(&[v1], &[[0.0, 0.0]]).is_none());
         assert!(triangulate_dlt(&[v1, v1], &[[0.0, 0.0]]).is_none());
         assert!(
-            triangulate_points(&v1, &v1, &[[0.0, f64::NAN]], &[[0.0, 0.0]], TriangulationMethod::Dlt, 1.0)
+            triangulate_points(
+                &v1,
+                &v1,
+                &[[0.0, f64::NAN]],
+                &[[0.0, 0.0]],
+                TriangulationMethod::Dlt,
+                1.0
+            )
+            .is_err()
+        );
+        assert!(
+            triangulate_points(&v1, &v1, &[], &[[0.0, 0.0]], TriangulationMethod::Dlt, 1.0)
                 .is_err()
         );
-        assert!(triangulate_points(&v1, &v1, &[], &[[0.0, 0.0]], TriangulationMethod::Dlt, 1.0).is_err());
     }
 
     #[test]
@@ -729,7 +782,15 @@ pub(crate) mod tests {
         let near = Vector3::new(0.0, 0.0, 3.0);
         let far = Vector3::new(0.0, 0.0, 30.0);
         let tri = |x: &Vector3<f64>, s| {
-            triangulate_pair(&v1, &v2, &f, project(&v1, x), project(&v2, x), TriangulationMethod::Dlt, s)
+            triangulate_pair(
+                &v1,
+                &v2,
+                &f,
+                project(&v1, x),
+                project(&v2, x),
+                TriangulationMethod::Dlt,
+                s,
+            )
         };
         let a = tri(&near, 1.0);
         let b = tri(&near, 2.0);
@@ -821,16 +882,32 @@ pub(crate) mod tests {
             Some(Value::Points2D(Arc::new(p2.clone()))),
         ];
         let mut out = run_op(values.clone(), TriangulateParams::default()).unwrap();
-        let Some(Value::PointCloud(c)) = out.take("points") else { panic!() };
+        let Some(Value::PointCloud(c)) = out.take("points") else {
+            panic!()
+        };
         for (a, b) in c.positions.iter().zip(&pts) {
             assert!((f64::from(a[2]) - b.z).abs() < 1e-4);
         }
-        let Some(Value::Metrics(m)) = out.take("metrics") else { panic!() };
+        let Some(Value::Metrics(m)) = out.take("metrics") else {
+            panic!()
+        };
         assert_eq!(m["valid"], 10.0);
         let mut bad = values;
         bad[5] = Some(Value::Points2D(Arc::new(p2[..3].to_vec())));
         assert!(run_op(bad, TriangulateParams::default()).is_err());
-        assert!(Triangulate::new(TriangulateParams { sigma_px: 0.0, ..Default::default() }).is_err());
-        assert!(Triangulate::new(TriangulateParams { min_angle_deg: f64::NAN, ..Default::default() }).is_err());
+        assert!(
+            Triangulate::new(TriangulateParams {
+                sigma_px: 0.0,
+                ..Default::default()
+            })
+            .is_err()
+        );
+        assert!(
+            Triangulate::new(TriangulateParams {
+                min_angle_deg: f64::NAN,
+                ..Default::default()
+            })
+            .is_err()
+        );
     }
 }
