@@ -121,6 +121,11 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<geometry::rectify::Undistort>()?;
     registry.register::<geometry::rectify::StereoRectify>()?;
     registry.register::<geometry::rectify::DisparityToDepth>()?;
+    registry.register::<geometry::essential::DecomposeEssential>()?;
+    registry.register::<geometry::decompose::DecomposeHomography>()?;
+    registry.register::<geometry::pnp::SolvePnp>()?;
+    registry.register::<geometry::triangulate::Triangulate>()?;
+    registry.register::<geometry::servo::VisualServoStep>()?;
     Ok(())
 }
 

@@ -6,13 +6,19 @@
 
 pub mod calibrate;
 pub mod camera;
+pub mod decompose;
+pub mod essential;
 pub mod fundamental;
 pub mod homography;
 pub mod lm;
+pub mod pnp;
+pub mod pose_util;
 pub mod projection;
 pub mod ransac;
 pub mod rectify;
 pub mod robust;
+pub mod servo;
 pub mod shapes;
 pub mod transforms;
+pub mod triangulate;
 pub mod two_view;
