@@ -3,7 +3,7 @@
 
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector2, Vector3};
 use ocellus_engine::op::{Inputs, OpError};
-use ocellus_engine::value::{Camera, CameraModel, Matrix, Pose, Value};
+use ocellus_engine::value::{Camera, Distortion, Matrix, Pose, Value};
 
 /// Pinhole intrinsics `fx, fy, cx, cy` (pixels).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -32,7 +32,8 @@ impl Intrinsics {
         Ok(Intrinsics { fx, fy, cx, cy })
     }
 
-    /// The pinhole part of a camera. Distortion terms must be zero (undistort points first).
+    /// The pinhole part of a camera. Skew and distortion terms must be zero (undistort the
+    /// points first, e.g. with `geometry.undistort`).
     pub fn from_camera(camera: &Camera) -> Result<Intrinsics, String> {
         let p = &camera.params;
         if p.len() != camera.model.param_count() {
@@ -43,19 +44,25 @@ impl Intrinsics {
                 p.len()
             ));
         }
-        let (k, rest) = match camera.model {
-            CameraModel::SimplePinhole | CameraModel::SimpleRadial | CameraModel::Radial => {
-                ((p[0], p[0], p[1], p[2]), &p[3..])
-            }
-            CameraModel::Pinhole | CameraModel::OpenCv => ((p[0], p[1], p[2], p[3]), &p[4..]),
+        let k = camera.intrinsics();
+        if k.skew != 0.0 {
+            return Err(format!(
+                "camera has skew {}; these solvers take a zero-skew pinhole camera",
+                k.skew
+            ));
+        }
+        let distorted = match camera.distortion() {
+            Distortion::None => false,
+            Distortion::RadialTangential(d) => d.iter().any(|&v| v != 0.0),
+            Distortion::Fisheye(d) => d.iter().any(|&v| v != 0.0),
         };
-        if rest.iter().any(|&d| d != 0.0) {
+        if distorted {
             return Err(format!(
                 "camera model {} has non-zero distortion terms; undistort the points first",
                 camera.model.colmap_name()
             ));
         }
-        Intrinsics::new(k.0, k.1, k.2, k.3)
+        Intrinsics::new(k.fx, k.fy, k.cx, k.cy)
     }
 
     /// The calibration matrix `K`.
@@ -266,6 +273,7 @@ pub fn matrix_value(rows: usize, cols: usize, data: Vec<f64>) -> Result<Value, O
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ocellus_engine::value::CameraModel;
 
     #[test]
     fn pose_round_trip_and_camera() {
