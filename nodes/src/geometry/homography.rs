@@ -320,7 +320,7 @@ pub fn refine_homography(h: &Matrix3<f64>, data: &[Correspondence]) -> (Matrix3<
     };
     let t2_inv = inverse_similarity(&t2);
     let hn = t2 * h * inverse_similarity(&t1);
-    if !(hn[(2, 2)].abs() > 1e-8 * hn.norm()) {
+    if hn[(2, 2)].is_nan() || hn[(2, 2)].abs() <= 1e-8 * hn.norm() {
         return fallback;
     }
     let hn = hn / hn[(2, 2)];

@@ -126,7 +126,7 @@ fn kasa(data: &[[f64; 2]]) -> Option<Circle> {
         .map(|p| (p[0] - mx).hypot(p[1] - my))
         .sum::<f64>()
         / n;
-    if !(s > 0.0) {
+    if s.is_nan() || s <= 0.0 {
         return None;
     }
     // Solve [x y 1]·[D E F]ᵀ = −(x² + y²) in the least-squares sense.
@@ -257,7 +257,7 @@ impl Estimator for PlaneEstimator {
         order.sort_by(|&a, &b| eigen.eigenvalues[a].total_cmp(&eigen.eigenvalues[b]));
         // Degenerate (collinear or coincident): the two smallest eigenvalues both ~0.
         let largest = eigen.eigenvalues[order[2]];
-        if !(largest > 0.0) || eigen.eigenvalues[order[1]] <= 1e-20 * largest {
+        if largest.is_nan() || largest <= 0.0 || eigen.eigenvalues[order[1]] <= 1e-20 * largest {
             return Vec::new();
         }
         let v = eigen.eigenvectors.column(order[0]).normalize();

@@ -128,7 +128,7 @@ pub fn fit_similarity2(data: &[Pair2]) -> Option<Affine2> {
         im += x * v - y * u;
         norm += x * x + y * y;
     }
-    if !(norm > 0.0) {
+    if norm.is_nan() || norm <= 0.0 {
         return None;
     }
     let (p, q) = (re / norm, im / norm);
@@ -201,7 +201,7 @@ pub fn umeyama(data: &[Pair3], with_scale: bool) -> Option<Similarity3> {
     }
     cov /= n;
     var_x /= n;
-    if !(var_x > 0.0) {
+    if var_x.is_nan() || var_x <= 0.0 {
         return None;
     }
     let svd = cov.svd(true, true);
@@ -210,7 +210,7 @@ pub fn umeyama(data: &[Pair3], with_scale: bool) -> Option<Similarity3> {
     // Rank < 2 (collinear points): the rotation about the line is undetermined.
     let mut sorted = [sv[0], sv[1], sv[2]];
     sorted.sort_by(|a, b| b.total_cmp(a));
-    if !(sorted[1] > 1e-12 * sorted[0]) {
+    if sorted[1].is_nan() || sorted[1] <= 1e-12 * sorted[0] {
         return None;
     }
     let d = if (u * v_t).determinant() < 0.0 {

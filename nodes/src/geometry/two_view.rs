@@ -520,13 +520,16 @@ pub struct MatchedPoints {
     sort_by_distance: bool,
 }
 
+/// Aligned left and right point lists.
+pub type PointPairs = (Vec<[f64; 2]>, Vec<[f64; 2]>);
+
 /// The positions of matched keypoints, `(left, right)`, optionally sorted by distance.
 pub fn matched_points(
     left: &[Keypoint],
     right: &[Keypoint],
     matches: &[Match],
     sort_by_distance: bool,
-) -> Result<(Vec<[f64; 2]>, Vec<[f64; 2]>), String> {
+) -> Result<PointPairs, String> {
     let mut order: Vec<&Match> = matches.iter().collect();
     if sort_by_distance {
         order.sort_by(|a, b| a.distance.total_cmp(&b.distance));
