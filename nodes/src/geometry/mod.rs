@@ -6,8 +6,8 @@
 
 pub mod decompose;
 pub mod essential;
-#[cfg(test)]
-mod eval_tmp;
 pub mod pnp;
 pub mod pose_util;
 pub mod robust;
+pub mod servo;
+pub mod triangulate;
