@@ -25,7 +25,7 @@ use ocellus_engine::value::Value;
 
 use super::pnp::{CameraPose, refine_pose};
 use super::pose_util::{
-    Intrinsics, input_intrinsics, input_matrix3, input_points2, matrix_value, nearest_rotation,
+    Intrinsics, gt, input_intrinsics, input_matrix3, input_points2, matrix_value, nearest_rotation,
     pose_from_rt,
 };
 
@@ -59,7 +59,7 @@ pub fn decompose_homography(
     let mut ord = [0usize, 1, 2];
     ord.sort_by(|&a, &b| s[b].total_cmp(&s[a]));
     let (s1, s2, s3) = (s[ord[0]], s[ord[1]], s[ord[2]]);
-    if !(s3 > 1e-12 * s1) || !s1.is_finite() {
+    if !gt(s3, 1e-12 * s1) || !s1.is_finite() {
         return Err("homography is rank-deficient".into());
     }
     hn /= s2;
@@ -163,7 +163,7 @@ pub fn plane_pose_from_homography(h: &Matrix3<f64>, k: &Intrinsics) -> Result<Ca
         m.column(2).into_owned(),
     );
     let norm = 0.5 * (c1.norm() + c2.norm());
-    if !(norm > 0.0) || !norm.is_finite() {
+    if !gt(norm, 0.0) || !norm.is_finite() {
         return Err("homography is degenerate".into());
     }
     let mut lambda = 1.0 / norm;
@@ -172,7 +172,7 @@ pub fn plane_pose_from_homography(h: &Matrix3<f64>, k: &Intrinsics) -> Result<Ca
     }
     let (r1, r2) = (c1 * lambda, c2 * lambda);
     let r3 = r1.cross(&r2);
-    if !(r3.norm() > 1e-9) {
+    if !gt(r3.norm(), 1e-9) {
         return Err("homography is degenerate (columns parallel)".into());
     }
     let r = nearest_rotation(&Matrix3::from_columns(&[r1, r2, r3])).ok_or("SVD failed")?;
@@ -226,7 +226,7 @@ pub fn homography_dlt(x1: &[Vector2<f64>], x2: &[Vector2<f64>]) -> Option<Matrix
     let eig = ata.symmetric_eigen();
     let mut ord: [usize; 9] = std::array::from_fn(|i| i);
     ord.sort_by(|&i, &j| eig.eigenvalues[i].total_cmp(&eig.eigenvalues[j]));
-    if !(eig.eigenvalues[ord[1]] > 1e-14 * eig.eigenvalues[ord[8]]) {
+    if !gt(eig.eigenvalues[ord[1]], 1e-14 * eig.eigenvalues[ord[8]]) {
         return None;
     }
     let h = eig.eigenvectors.column(ord[0]);
@@ -246,7 +246,7 @@ pub fn marker_pose(
     k: &Intrinsics,
     refine: bool,
 ) -> Result<CameraPose, String> {
-    if !(side > 0.0) || !side.is_finite() {
+    if !gt(side, 0.0) || !side.is_finite() {
         return Err(format!("marker side must be finite and > 0, got {side}"));
     }
     let h = side / 2.0;
@@ -462,6 +462,54 @@ mod tests {
             assert!(!vis.is_empty() && vis.len() <= 2, "{vis:?}");
             assert!(vis.iter().any(|&i| (sols[i].n - n).norm() < 1e-10));
         }
+    }
+
+    #[test]
+    fn matches_opencv_decomposition_and_visibility() {
+        // cv2.decomposeHomographyMat and cv2.filterHomographyDecompByVisibleRefpoints (OpenCV 5)
+        // on the `recovers_ground_truth_among_candidates` setup: (t, n, Rodrigues r) per
+        // solution, and OpenCV keeps solutions 1 and 3.
+        let cv: [([f64; 3], [f64; 3], [f64; 3]); 4] = [
+            (
+                [-0.125, -0.025, 0.05],
+                [-0.097590007294853, 0.195180014589681, -0.975900072948539],
+                [0.1, -0.2, 0.05],
+            ),
+            (
+                [0.125, 0.025, -0.05],
+                [0.097590007294853, -0.195180014589681, 0.975900072948539],
+                [0.1, -0.2, 0.05],
+            ),
+            (
+                [-0.003024303696523, -0.039447246313201, 0.131090687485637],
+                [0.860715569428111, 0.0818882223319, -0.502456990783653],
+                [0.096706513123142, -0.079457139886314, 0.080129510628724],
+            ),
+            (
+                [0.003024303696523, 0.039447246313201, -0.131090687485637],
+                [-0.860715569428111, -0.0818882223319, 0.502456990783653],
+                [0.096706513123142, -0.079457139886314, 0.080129510628724],
+            ),
+        ];
+        let r = *Rotation3::from_scaled_axis(Vector3::new(0.1, -0.2, 0.05)).matrix();
+        let n = Vector3::new(0.1, -0.2, 1.0).normalize();
+        let (h, p1, p2) = setup(r, Vector3::new(0.5, 0.1, -0.2), n, 4.0);
+        let kk = k();
+        let sols = decompose_homography(&h, &kk, &kk).unwrap();
+        let find = |c: &([f64; 3], [f64; 3], [f64; 3])| {
+            let rc = *Rotation3::from_scaled_axis(Vector3::from(c.2)).matrix();
+            sols.iter().position(|s| {
+                (s.t - Vector3::from(c.0)).norm() < 1e-9
+                    && (s.n - Vector3::from(c.1)).norm() < 1e-9
+                    && (s.r - rc).norm() < 1e-9
+            })
+        };
+        let idx: Vec<usize> = cv.iter().map(|c| find(c).unwrap()).collect();
+        let mut vis = visible_solutions(&sols, &kk, &kk, &p1, &p2, 1.0);
+        vis.sort_unstable();
+        let mut expect = vec![idx[1], idx[3]];
+        expect.sort_unstable();
+        assert_eq!(vis, expect);
     }
 
     #[test]

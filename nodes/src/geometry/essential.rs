@@ -22,7 +22,7 @@ use ocellus_engine::types::PortType;
 use ocellus_engine::value::Value;
 
 use super::pose_util::{
-    input_intrinsics, input_matrix3, input_points2, matrix_value, pose_from_rt, skew,
+    gt, input_intrinsics, input_matrix3, input_points2, matrix_value, pose_from_rt, skew,
 };
 use super::robust::Estimator;
 
@@ -185,7 +185,7 @@ fn null_space_5x9(rows: &[[f64; 9]; 5]) -> Option<[[f64; 9]; 4]> {
     let mut a = *rows;
     let mut cols: [usize; 9] = std::array::from_fn(|i| i);
     let scale = a.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
-    if !(scale > 0.0) || !scale.is_finite() {
+    if !gt(scale, 0.0) || !scale.is_finite() {
         return None;
     }
     for k in 0..5 {
@@ -205,15 +205,16 @@ fn null_space_5x9(rows: &[[f64; 9]; 5]) -> Option<[[f64; 9]; 4]> {
         a.swap(k, pr);
         cols.swap(k, pc);
         let piv = a[k][cols[k]];
-        for c in 0..9 {
-            a[k][c] /= piv;
+        for v in a[k].iter_mut() {
+            *v /= piv;
         }
         for r in 0..5 {
             if r != k {
                 let f = a[r][cols[k]];
                 if f != 0.0 {
-                    for c in 0..9 {
-                        a[r][c] -= f * a[k][c];
+                    let pivot_row = a[k];
+                    for (v, p) in a[r].iter_mut().zip(pivot_row) {
+                        *v -= f * p;
                     }
                 }
             }
@@ -238,7 +239,7 @@ fn null_space_5x9(rows: &[[f64; 9]; 5]) -> Option<[[f64; 9]; 4]> {
 /// Real roots of an ascending-power polynomial (companion-matrix eigenvalues, Newton-polished).
 fn real_roots(p: &[f64]) -> Vec<f64> {
     let max = p.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    if !(max > 0.0) || !max.is_finite() {
+    if !gt(max, 0.0) || !max.is_finite() {
         return Vec::new();
     }
     let mut deg = p.len() - 1;
@@ -303,8 +304,8 @@ pub fn essential_five_point(x1: &[Vector2<f64>; 5], x2: &[Vector2<f64>; 5]) -> V
     for i in 0..3 {
         for j in i..3 {
             let mut s = [0.0; 10];
-            for k in 0..3 {
-                let p = mul11(&e[i][k], &e[j][k]);
+            for (eik, ejk) in e[i].iter().zip(&e[j]) {
+                let p = mul11(eik, ejk);
                 for m in 0..10 {
                     s[m] += p[m];
                 }
@@ -345,7 +346,7 @@ pub fn essential_five_point(x1: &[Vector2<f64>; 5], x2: &[Vector2<f64>; 5]) -> V
     }
     // Gauss–Jordan on the first ten columns.
     let scale = a.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
-    if !(scale > 0.0) || !scale.is_finite() {
+    if !gt(scale, 0.0) || !scale.is_finite() {
         return Vec::new();
     }
     for k in 0..10 {
@@ -360,15 +361,16 @@ pub fn essential_five_point(x1: &[Vector2<f64>; 5], x2: &[Vector2<f64>; 5]) -> V
         }
         a.swap(k, pr);
         let piv = a[k][k];
-        for c in k..20 {
-            a[k][c] /= piv;
+        for v in a[k][k..].iter_mut() {
+            *v /= piv;
         }
         for r in 0..10 {
             if r != k {
                 let f = a[r][k];
                 if f != 0.0 {
-                    for c in k..20 {
-                        a[r][c] -= f * a[k][c];
+                    let pivot_row = a[k];
+                    for (v, p) in a[r][k..].iter_mut().zip(&pivot_row[k..]) {
+                        *v -= f * p;
                     }
                 }
             }
@@ -444,7 +446,7 @@ fn normalizing_transform(pts: &[Vector2<f64>]) -> Option<Matrix3<f64>> {
     let n = pts.len() as f64;
     let c = pts.iter().sum::<Vector2<f64>>() / n;
     let d = pts.iter().map(|p| (p - c).norm()).sum::<f64>() / n;
-    if !(d > 0.0) || !d.is_finite() {
+    if !gt(d, 0.0) || !d.is_finite() {
         return None;
     }
     let s = std::f64::consts::SQRT_2 / d;
@@ -469,7 +471,7 @@ pub fn project_to_essential(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {
     let mut s = svd.singular_values;
     let mut idx = [0usize, 1, 2];
     idx.sort_by(|&a, &b| s[b].total_cmp(&s[a]));
-    if !(s[idx[1]] > 1e-12 * s[idx[0]]) {
+    if !gt(s[idx[1]], 1e-12 * s[idx[0]]) {
         return None;
     }
     s[idx[0]] = 1.0;
@@ -830,6 +832,13 @@ mod tests {
 
     use crate::geometry::pose_util::{rotation_angle_deg, vector_angle_deg};
 
+    type Scene = (
+        Matrix3<f64>,
+        Vector3<f64>,
+        Vec<Vector2<f64>>,
+        Vec<Vector2<f64>>,
+    );
+
     /// Deterministic pseudo-random numbers in [−1, 1).
     pub(crate) fn lcg(seed: &mut u64) -> f64 {
         *seed = seed
@@ -838,16 +847,7 @@ mod tests {
         ((*seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
     }
 
-    fn scene(
-        seed: u64,
-        n: usize,
-        planar: f64,
-    ) -> (
-        Matrix3<f64>,
-        Vector3<f64>,
-        Vec<Vector2<f64>>,
-        Vec<Vector2<f64>>,
-    ) {
+    fn scene(seed: u64, n: usize, planar: f64) -> Scene {
         let mut s = seed;
         let r =
             *Rotation3::from_scaled_axis(Vector3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 0.3)

@@ -34,7 +34,7 @@ use ocellus_engine::value::{Metrics, Value};
 use ocellus_engine::{param_enum, params};
 
 use super::pose_util::{
-    Intrinsics, input_intrinsics, input_points2, input_points3, nearest_rotation, pose_from_rt,
+    Intrinsics, gt, input_intrinsics, input_points2, input_points3, nearest_rotation, pose_from_rt,
     skew,
 };
 use super::robust::Estimator;
@@ -55,7 +55,7 @@ pub type PnpPair = ([f64; 2], [f64; 3]);
 #[inline]
 pub fn reprojection_sq(k: &Intrinsics, pose: &CameraPose, px: [f64; 2], x: [f64; 3]) -> f64 {
     let c = pose.r * Vector3::from(x) + pose.t;
-    if !(c.z > 0.0) {
+    if !gt(c.z, 0.0) {
         return f64::INFINITY;
     }
     let q = k.project(&c);
@@ -65,7 +65,7 @@ pub fn reprojection_sq(k: &Intrinsics, pose: &CameraPose, px: [f64; 2], x: [f64;
 /// Real roots of `c3 x³ + c2 x² + c1 x + c0` (Newton-polished); handles degree drops.
 fn cubic_roots(c3: f64, c2: f64, c1: f64, c0: f64) -> Vec<f64> {
     let scale = c3.abs().max(c2.abs()).max(c1.abs()).max(c0.abs());
-    if !(scale > 0.0) || !scale.is_finite() {
+    if !gt(scale, 0.0) || !scale.is_finite() {
         return Vec::new();
     }
     let mut roots = Vec::with_capacity(3);
@@ -140,7 +140,7 @@ pub fn p3p(bearings: &[Vector3<f64>; 3], world: &[Vector3<f64>; 3]) -> Vec<Camer
     let mut y = *bearings;
     for v in y.iter_mut() {
         let n = v.norm();
-        if !(n > 0.0) || !n.is_finite() {
+        if !gt(n, 0.0) || !n.is_finite() {
             return Vec::new();
         }
         *v /= n;
@@ -176,7 +176,7 @@ pub fn p3p(bearings: &[Vector3<f64>; 3], world: &[Vector3<f64>; 3]) -> Vec<Camer
         let eig = d0.symmetric_eigen();
         let ev = eig.eigenvalues;
         let amax = ev.amax();
-        if !(amax > 0.0) || !amax.is_finite() {
+        if !gt(amax, 0.0) || !amax.is_finite() {
             continue;
         }
         let (pmax, nmin) = (ev.max(), ev.min());
@@ -210,7 +210,7 @@ pub fn p3p(bearings: &[Vector3<f64>; 3], world: &[Vector3<f64>; 3]) -> Vec<Camer
     for sign in [1.0, -1.0] {
         let p = ep - en * (sign * s);
         let pn = p.norm();
-        if !(pn > 0.0) {
+        if !gt(pn, 0.0) {
             continue;
         }
         let p = p / pn;
@@ -250,18 +250,18 @@ pub fn p3p(bearings: &[Vector3<f64>; 3], world: &[Vector3<f64>; 3]) -> Vec<Camer
                     kk = aij / den;
                 }
             }
-            if !(kk > 0.0) || !kk.is_finite() {
+            if !gt(kk, 0.0) || !kk.is_finite() {
                 continue;
             }
             let mut lam = dir * kk.sqrt();
             if lam.sum() < 0.0 {
                 lam = -lam;
             }
-            if lam.iter().any(|&l| !(l > 0.0)) {
+            if lam.iter().any(|&l| !gt(l, 0.0)) {
                 continue;
             }
             refine_lambdas(&mut lam, [b12, b13, b23], a);
-            if lam.iter().any(|&l| !(l > 0.0) || !l.is_finite()) {
+            if lam.iter().any(|&l| !gt(l, 0.0) || !l.is_finite()) {
                 continue;
             }
             if let Some(pose) = pose_from_lambdas(&y, world, &lam, &d12, &d13, &cross)
@@ -304,7 +304,7 @@ fn refine_lambdas(lam: &mut Vector3<f64>, b: [f64; 3], a: [f64; 3]) {
         };
         let cand = l - step;
         let rc = f(&cand);
-        if !(rc.norm() < r.norm()) {
+        if !gt(r.norm(), rc.norm()) {
             return;
         }
         *lam = cand;
@@ -382,7 +382,7 @@ pub fn epnp(k: &Intrinsics, pixels: &[[f64; 2]], world: &[[f64; 3]]) -> Option<C
     cov /= n as f64;
     let eig = cov.symmetric_eigen();
     let lmax = eig.eigenvalues.max();
-    if !(lmax > 0.0) || eig.eigenvalues.min() <= 1e-10 * lmax {
+    if !gt(lmax, 0.0) || eig.eigenvalues.min() <= 1e-10 * lmax {
         return None;
     }
     let mut ctrl = [c0; 4];
@@ -561,7 +561,7 @@ fn gauss_newton_betas(
             break;
         }
         let (rc, jc) = eval(&cand);
-        if !(rc.norm() < r.norm()) {
+        if !gt(r.norm(), rc.norm()) {
             break;
         }
         b = cand;
@@ -594,7 +594,7 @@ pub fn pnp_dlt(k: &Intrinsics, pixels: &[[f64; 2]], world: &[[f64; 3]]) -> Optio
     let s2 = x.iter().map(|p| (p - c2).xy().norm()).sum::<f64>() / n as f64;
     let c3 = w.iter().sum::<Vector3<f64>>() / n as f64;
     let s3 = w.iter().map(|p| (p - c3).norm()).sum::<f64>() / n as f64;
-    if !(s2 > 0.0 && s3 > 0.0) {
+    if !(gt(s2, 0.0) && gt(s3, 0.0)) {
         return None;
     }
     let (f2, f3) = (std::f64::consts::SQRT_2 / s2, 3f64.sqrt() / s3);
@@ -624,7 +624,7 @@ pub fn pnp_dlt(k: &Intrinsics, pixels: &[[f64; 2]], world: &[[f64; 3]]) -> Optio
     let mut ord: [usize; 12] = std::array::from_fn(|i| i);
     ord.sort_by(|&i, &j| s[i].total_cmp(&s[j]));
     // A second (near-)null vector means the configuration does not determine P.
-    if !(s[ord[1]] > 1e-9 * s[ord[11]]) {
+    if !gt(s[ord[1]], 1e-9 * s[ord[11]]) {
         return None;
     }
     let pn = Matrix3x4::from_fn(|r, c| vt[(ord[0], 4 * r + c)]);
@@ -638,7 +638,7 @@ pub fn pnp_dlt(k: &Intrinsics, pixels: &[[f64; 2]], world: &[[f64; 3]]) -> Optio
     }
     let sv = m.svd(false, false).singular_values;
     let scale = sv.sum() / 3.0;
-    if !(scale > 0.0) || !scale.is_finite() {
+    if !gt(scale, 0.0) || !scale.is_finite() {
         return None;
     }
     let r = nearest_rotation(&(m / scale))?;
@@ -674,7 +674,7 @@ pub fn refine_pose(
         for (q, w) in pixels.iter().zip(world) {
             let rw = cur.r * Vector3::from(*w);
             let xc = rw + cur.t;
-            if !(xc.z > 0.0) {
+            if !gt(xc.z, 0.0) {
                 continue;
             }
             let iz = 1.0 / xc.z;
@@ -962,8 +962,8 @@ impl Op for SolvePnp {
         "Estimates a calibrated camera's pose from 2-D/3-D point correspondences.";
     const DOC: &'static str = r#"
 Finds the pose `camera_from_world` of a pinhole camera (`camera`; distortion must be zero) that
-projects `points3d[i]` (an N×3 matrix or a point cloud, world units) onto `points2d[i]`
-(pixels). No outlier rejection: feed inliers (or use a robust estimator).
+projects world point i (`points3d`, an N×3 matrix, or `cloud`, a point cloud; connect
+exactly one; world units) onto `points2d[i]` (pixels). No outlier rejection: feed inliers (or use a robust estimator).
 
 Methods: "p3p" runs Lambda Twist (Persson & Nordberg, ECCV 2018) on three well-spread points
 (the first, the farthest from it in the image, the one making the largest triangle) and keeps
@@ -983,11 +983,13 @@ Example:
 
     fn inputs() -> Vec<PortSpec> {
         vec![
+            PortSpec::new("points3d", PortType::Matrix, "World points, N×3 matrix.").optional(),
             PortSpec::new(
-                "points3d",
-                PortType::Matrix,
-                "World points: N×3 Matrix (a PointCloud is accepted too).",
-            ),
+                "cloud",
+                PortType::PointCloud,
+                "World points as a point cloud (instead of points3d).",
+            )
+            .optional(),
             PortSpec::new("points2d", PortType::Points2D, "Image points, px."),
             PortSpec::new("camera", PortType::Camera, "Pinhole intrinsics."),
         ]
@@ -1010,7 +1012,16 @@ Example:
 
 impl Operator for SolvePnp {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
-        let world = input_points3(inputs, "points3d")?;
+        let world = match (inputs.get("points3d"), inputs.get("cloud")) {
+            (Some(_), None) => input_points3(inputs, "points3d")?,
+            (None, Some(_)) => input_points3(inputs, "cloud")?,
+            _ => {
+                return Err(OpError::input(
+                    "points3d",
+                    "connect exactly one of points3d and cloud",
+                ));
+            }
+        };
         let pixels = input_points2(inputs, "points2d")?;
         let k = input_intrinsics(inputs, "camera")?;
         let pose = solve_pnp(&k, &pixels, &world, self.method, self.refine)
@@ -1270,6 +1281,7 @@ mod tests {
                 Some(Value::Matrix(Arc::new(
                     Matrix::new(10, 3, w.iter().flatten().copied().collect()).unwrap(),
                 ))),
+                None,
                 Some(Value::Points2D(Arc::new(px.clone()))),
                 Some(Value::Camera(Arc::new(cam.clone()))),
             ];
@@ -1288,5 +1300,31 @@ mod tests {
                 "{method:?}"
             );
         }
+        let op = SolvePnp::new(SolvePnpParams::default()).unwrap();
+        let specs = SolvePnp::inputs();
+        let cloud = ocellus_engine::value::PointCloud {
+            positions: w.iter().map(|p| p.map(|v| v as f32)).collect(),
+            colors: None,
+            normals: None,
+        };
+        let ctx = RunContext {
+            node: "p".into(),
+            threads: 1,
+            element: None,
+        };
+        let mut values = vec![
+            None,
+            Some(Value::PointCloud(Arc::new(cloud))),
+            Some(Value::Points2D(Arc::new(px.clone()))),
+            Some(Value::Camera(Arc::new(cam.clone()))),
+        ];
+        let mut out = op.run(&ctx, &Inputs::new(&specs, &values)).unwrap();
+        let Some(Value::Pose(p)) = out.take("pose") else {
+            panic!()
+        };
+        let (r, _) = crate::geometry::pose_util::rt_from_pose(&p).unwrap();
+        assert!(rotation_angle_deg(&r, &pose.r) < 1e-3);
+        values[0] = Some(Value::Matrix(Arc::new(Matrix::new(0, 3, vec![]).unwrap())));
+        assert!(op.run(&ctx, &Inputs::new(&specs, &values)).is_err());
     }
 }

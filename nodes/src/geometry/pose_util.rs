@@ -112,6 +112,12 @@ pub fn nearest_rotation(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {
     Some(u * d * vt)
 }
 
+/// `a > b`, false when either is NaN (reads better than a negated comparison in guards).
+#[inline]
+pub fn gt(a: f64, b: f64) -> bool {
+    a > b
+}
+
 /// `[v]×`, the cross-product matrix.
 #[inline]
 pub fn skew(v: &Vector3<f64>) -> Matrix3<f64> {

@@ -20,7 +20,7 @@ use ocellus_engine::types::PortType;
 use ocellus_engine::value::Value;
 use ocellus_engine::{param_enum, params};
 
-use super::pose_util::{input_intrinsics, input_points2, matrix_value};
+use super::pose_util::{gt, input_intrinsics, input_points2, matrix_value};
 
 /// The 2×6 interaction matrix of a normalized point `(x, y)` at depth `z`.
 pub fn interaction_matrix(x: f64, y: f64, z: f64) -> [[f64; 6]; 2] {
@@ -78,7 +78,7 @@ pub fn visual_servo_step(
     if depths
         .iter()
         .chain(desired_depths)
-        .any(|&z| !(z > 0.0) || !z.is_finite())
+        .any(|&z| !gt(z, 0.0) || !z.is_finite())
     {
         return Err("depths must be finite and > 0".into());
     }

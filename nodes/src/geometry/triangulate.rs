@@ -29,7 +29,7 @@ use ocellus_engine::value::{Metrics, PointCloud, Value};
 use ocellus_engine::{param_enum, params};
 
 use super::pose_util::{
-    Intrinsics, input_intrinsics, input_points2, input_pose, matrix_value, skew,
+    Intrinsics, gt, input_intrinsics, input_points2, input_pose, matrix_value, skew,
 };
 
 /// A calibrated view: pose `camera_from_world` (`x_cam = R x_world + t`) and intrinsics.
@@ -224,7 +224,7 @@ pub fn optimal_correction(f: &Matrix3<f64>, x1: [f64; 2], x2: [f64; 2]) -> ([f64
     let b = 0.5 * (n.norm_squared() + np.norm_squared());
     let c = xh.dot(&ex);
     let disc = b * b - a * c;
-    if !(b > 0.0) || !disc.is_finite() || disc < 0.0 {
+    if !gt(b, 0.0) || !disc.is_finite() || disc < 0.0 {
         return (x1, x2);
     }
     let d = disc.sqrt();
