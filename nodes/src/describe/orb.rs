@@ -319,9 +319,11 @@ fn gray_image(data: Vec<u8>, w: usize, h: usize) -> Result<Image, String> {
 }
 
 /// The pyramid of gray u8 levels (stops early at an empty level).
-fn pyramid(gray: &[u8], w: usize, h: usize, p: &OrbParams) -> Result<Vec<Level>, String> {
+fn pyramid(gray: Vec<u8>, w: usize, h: usize, p: &OrbParams) -> Result<Vec<Level>, String> {
     let first = p.first_level as usize;
-    let source = gray_image(gray.to_vec(), w, h)?;
+    // The input level itself; moved into its level (levels before it are enlarged from it
+    // first, later ones shrunk from their predecessor).
+    let mut source = Some(gray_image(gray, w, h)?);
     let mut levels: Vec<Level> = Vec::with_capacity(p.n_levels as usize);
     for l in 0..p.n_levels as usize {
         let scale = p.scale_factor.powi(l as i32 - first as i32);
@@ -330,14 +332,15 @@ fn pyramid(gray: &[u8], w: usize, h: usize, p: &OrbParams) -> Result<Vec<Level>,
         if lw == 0 || lh == 0 {
             break;
         }
-        let image = if l == first {
-            source.clone()
-        } else {
-            let src = match levels.last() {
-                Some(prev) if l > first => &prev.image,
-                _ => &source,
-            };
-            resize(src, Target::Size(lw, lh), Interpolation::Bilinear)?
+        let image = match (l.cmp(&first), levels.last(), source.as_ref()) {
+            (std::cmp::Ordering::Equal, _, _) => source
+                .take()
+                .ok_or("internal: the input level was used twice")?,
+            (std::cmp::Ordering::Greater, Some(prev), _) => {
+                resize(&prev.image, Target::Size(lw, lh), Interpolation::Bilinear)?
+            }
+            (_, _, Some(src)) => resize(src, Target::Size(lw, lh), Interpolation::Bilinear)?,
+            _ => return Err("internal: no source for a pyramid level".into()),
         };
         levels.push(Level {
             image,
@@ -434,6 +437,27 @@ pub fn orb_detect_and_compute(
     params: &OrbParams,
 ) -> Result<(Vec<Keypoint>, Descriptors), OpError> {
     validate(params).map_err(OpError::failed)?;
+    let pattern = orb_pattern(params.patch_size as usize, params.wta_k as usize);
+    orb_with_pattern(image, params, &pattern)
+}
+
+/// [`orb_detect_and_compute`] with a given test pattern (`pattern_points(wta_k)` points, each
+/// inside the disc of radius `patch_size/2`), for experiments with patterns.
+#[doc(hidden)]
+pub fn orb_with_pattern(
+    image: &Image,
+    params: &OrbParams,
+    pattern: &[(i32, i32)],
+) -> Result<(Vec<Keypoint>, Descriptors), OpError> {
+    validate(params).map_err(OpError::failed)?;
+    let half = (params.patch_size / 2) as i32;
+    if pattern.len() != pattern_points(params.wta_k as usize)
+        || pattern.iter().any(|&(x, y)| x * x + y * y > half * half)
+    {
+        return Err(OpError::failed(
+            "pattern: wrong size or points outside the patch",
+        ));
+    }
     let (w, h) = (image.width(), image.height());
     let empty = || {
         (
@@ -448,14 +472,14 @@ pub fn orb_detect_and_compute(
         return Ok(empty());
     }
     let gray = gray_u8(image);
-    let levels = pyramid(&gray, w, h, params).map_err(|e| OpError::input("image", e))?;
+    let levels =
+        pyramid(gray.into_owned(), w, h, params).map_err(|e| OpError::input("image", e))?;
     let budgets = level_budgets(
         params.max_features as usize,
         params.n_levels as usize,
         params.scale_factor,
     );
     let wta_k = params.wta_k as usize;
-    let pattern = orb_pattern(params.patch_size as usize, wta_k);
     let per_level: Vec<Result<LevelOutput, String>> = levels
         .par_iter()
         .zip(budgets.par_iter())
@@ -482,7 +506,7 @@ pub fn orb_detect_and_compute(
                     x,
                     y,
                     angle,
-                    &pattern,
+                    pattern,
                     wta_k,
                     &mut offsets,
                     row,
@@ -579,15 +603,39 @@ pub fn orb_pattern(patch_size: usize, wta_k: usize) -> Arc<Vec<(i32, i32)>> {
 }
 
 /// The deterministic training image of [`orb_pattern`].
+#[cfg(test)]
 fn training_image(side: usize, rng: &mut SplitMix64) -> Vec<u8> {
+    training_image_model(side, rng, 400, 0, 0.0)
+}
+
+/// Power-law size between `lo` and `hi` (density ∝ r⁻³, the dead-leaves model's).
+fn power_law_size(rng: &mut SplitMix64, lo: f64, hi: f64) -> f64 {
+    let (a, b) = (lo.powi(-2), hi.powi(-2));
+    (a - rng.uniform() * (a - b)).powf(-0.5)
+}
+
+/// Training image: `model` 0 draws sizes uniformly in 4..44 px; 1 draws them from a power law
+/// in 2..120 px (dead leaves: scale-invariant statistics, like natural images). `noise` adds
+/// Gaussian noise of that σ (gray levels) after the smoothing.
+fn training_image_model(
+    side: usize,
+    rng: &mut SplitMix64,
+    shapes: usize,
+    model: u32,
+    noise: f64,
+) -> Vec<u8> {
     let mut img = vec![128u8; side * side];
-    for _ in 0..400 {
+    for _ in 0..shapes {
         let cx = rng.uniform() * side as f64;
         let cy = rng.uniform() * side as f64;
         let value = (rng.uniform() * 256.0) as u8;
         let disc = rng.uniform() < 0.4;
-        let a = 4.0 + rng.uniform() * 40.0;
-        let b = 4.0 + rng.uniform() * 40.0;
+        let (a, b) = if model == 1 {
+            let a = power_law_size(rng, 2.0, 120.0);
+            (a, a * (0.3 + 0.7 * rng.uniform()))
+        } else {
+            (4.0 + rng.uniform() * 40.0, 4.0 + rng.uniform() * 40.0)
+        };
         let (sin, cos) = (rng.uniform() * std::f64::consts::PI).sin_cos();
         let reach = a.max(b) * 1.5;
         let y0 = (cy - reach).max(0.0) as usize;
@@ -610,33 +658,112 @@ fn training_image(side: usize, rng: &mut SplitMix64) -> Vec<u8> {
             }
         }
     }
-    smooth_gray(&img, side, side, 1.0, 0).unwrap_or(img)
+    let mut out = smooth_gray(&img, side, side, 1.0, 0).unwrap_or(img);
+    if noise > 0.0 {
+        for v in &mut out {
+            *v = (f64::from(*v) + noise * rng.normal())
+                .round()
+                .clamp(0.0, 255.0) as u8;
+        }
+    }
+    out
+}
+
+/// Settings of the pattern learning of [`orb_pattern`] (exposed for experiments; the operator
+/// always uses [`PatternTraining::default`]).
+#[doc(hidden)]
+#[derive(Debug, Clone, PartialEq)]
+pub struct PatternTraining {
+    /// Candidate tests drawn.
+    pub candidates: usize,
+    /// Candidate points: Gaussian of σ = patch_size / `sigma_ratio`; 0 draws uniformly in the disc.
+    pub sigma_ratio: f64,
+    /// Training images (each of 512×512 px, a new random drawing).
+    pub images: usize,
+    /// Shapes drawn per training image.
+    pub shapes: usize,
+    /// Keypoints kept per training image.
+    pub keypoints: usize,
+    /// Starting correlation threshold of the greedy selection.
+    pub threshold: f64,
+    /// Seed offset (0: the operator's).
+    pub seed: u64,
+    /// Training image model (see `training_image_model`).
+    pub model: u32,
+    /// Noise σ added to training images, gray levels.
+    pub noise: f64,
+}
+
+impl Default for PatternTraining {
+    fn default() -> Self {
+        PatternTraining {
+            candidates: 1024,
+            sigma_ratio: 5.0,
+            images: 1,
+            shapes: 400,
+            keypoints: 1500,
+            threshold: 0.2,
+            seed: 0,
+            model: 0,
+            noise: 0.0,
+        }
+    }
 }
 
 fn learn_pattern(patch_size: usize) -> Vec<(i32, i32)> {
-    const CANDIDATES: usize = 1024;
+    learn_pattern_with(patch_size, &PatternTraining::default())
+}
+
+/// [`orb_pattern`]'s learning (WTA_K 2) under the settings `t`.
+#[doc(hidden)]
+pub fn learn_pattern_with(patch_size: usize, t: &PatternTraining) -> Vec<(i32, i32)> {
     const TESTS: usize = 8 * BYTES;
     const SIDE: usize = 512;
+    let candidates_n = t.candidates.max(TESTS);
     let half = (patch_size / 2) as i32;
-    let mut rng = SplitMix64::new(ORB_SEED ^ ((patch_size as u64) << 8));
+    let mut rng = SplitMix64::new(ORB_SEED ^ ((patch_size as u64) << 8) ^ t.seed);
     let inside = move |x: i32, y: i32| x * x + y * y <= half * half;
-    let sigma = patch_size as f64 / 5.0;
-    let mut candidates: Vec<[(i32, i32); 2]> = Vec::with_capacity(CANDIDATES);
-    while candidates.len() < CANDIDATES {
-        let a = gaussian_point(&mut rng, 0.0, 0.0, sigma, inside);
-        let b = gaussian_point(&mut rng, 0.0, 0.0, sigma, inside);
+    let sigma = patch_size as f64 / t.sigma_ratio;
+    let mut candidates: Vec<[(i32, i32); 2]> = Vec::with_capacity(candidates_n);
+    let draw = |rng: &mut SplitMix64| {
+        if t.sigma_ratio > 0.0 {
+            gaussian_point(rng, 0.0, 0.0, sigma, inside)
+        } else {
+            loop {
+                let x = rng.below(2 * half as usize + 1) as i32 - half;
+                let y = rng.below(2 * half as usize + 1) as i32 - half;
+                if inside(x, y) {
+                    return (x, y);
+                }
+            }
+        }
+    };
+    while candidates.len() < candidates_n {
+        let a = draw(&mut rng);
+        let b = draw(&mut rng);
         if a != b {
             candidates.push([a, b]);
         }
     }
-    let img = training_image(SIDE, &mut rng);
     let params = OrbParams {
         patch_size: patch_size as u32,
         ..OrbParams::default()
     };
-    let found = level_keypoints(&img, SIDE, SIDE, 1500, &params);
-    let smooth = smooth_gray(&img, SIDE, SIDE, 2.0, 7).unwrap_or_else(|_| img.clone());
-    let n = found.len();
+    // Per training keypoint: the bits of every candidate.
+    let flat: Vec<(i32, i32)> = candidates.iter().flatten().copied().collect();
+    let mut offsets = Vec::with_capacity(flat.len());
+    let mut out = vec![0u8; candidates_n.div_ceil(8)];
+    let mut samples: Vec<Vec<u8>> = Vec::new();
+    for _ in 0..t.images.max(1) {
+        let img = training_image_model(SIDE, &mut rng, t.shapes, t.model, t.noise);
+        let found = level_keypoints(&img, SIDE, SIDE, t.keypoints, &params);
+        let smooth = smooth_gray(&img, SIDE, SIDE, 2.0, 7).unwrap_or_else(|_| img.clone());
+        for &(x, y, _, angle) in &found {
+            describe_at(&smooth, SIDE, x, y, angle, &flat, 2, &mut offsets, &mut out);
+            samples.push(out.clone());
+        }
+    }
+    let n = samples.len();
     if n < 16 {
         // Too little training data (only for patches nearly as large as the image): keep the
         // Gaussian candidates as drawn.
@@ -644,23 +771,19 @@ fn learn_pattern(patch_size: usize) -> Vec<(i32, i32)> {
     }
     // Bit vectors of every candidate over the training keypoints.
     let words = n.div_ceil(64);
-    let mut bits = vec![0u64; CANDIDATES * words];
-    let flat: Vec<(i32, i32)> = candidates.iter().flatten().copied().collect();
-    let mut offsets = Vec::with_capacity(flat.len());
-    let mut out = vec![0u8; CANDIDATES / 8];
-    for (k, &(x, y, _, angle)) in found.iter().enumerate() {
-        describe_at(&smooth, SIDE, x, y, angle, &flat, 2, &mut offsets, &mut out);
-        for c in 0..CANDIDATES {
+    let mut bits = vec![0u64; candidates_n * words];
+    for (k, out) in samples.iter().enumerate() {
+        for c in 0..candidates_n {
             if out[c / 8] >> (c % 8) & 1 == 1 {
                 bits[c * words + k / 64] |= 1 << (k % 64);
             }
         }
     }
     let row = |c: usize| &bits[c * words..(c + 1) * words];
-    let mean: Vec<f64> = (0..CANDIDATES)
+    let mean: Vec<f64> = (0..candidates_n)
         .map(|c| row(c).iter().map(|w| w.count_ones()).sum::<u32>() as f64 / n as f64)
         .collect();
-    let mut order: Vec<usize> = (0..CANDIDATES).collect();
+    let mut order: Vec<usize> = (0..candidates_n).collect();
     order.sort_by(|&a, &b| (mean[a] - 0.5).abs().total_cmp(&(mean[b] - 0.5).abs()));
     let corr = |a: usize, b: usize| -> f64 {
         let both = row(a)
@@ -677,7 +800,7 @@ fn learn_pattern(patch_size: usize) -> Vec<(i32, i32)> {
         }
     };
     let mut chosen: Vec<usize> = Vec::with_capacity(TESTS);
-    let mut threshold = 0.2;
+    let mut threshold = t.threshold;
     while chosen.len() < TESTS {
         for &c in &order {
             if chosen.len() == TESTS {
@@ -734,7 +857,9 @@ Test pattern: not OpenCV's learned table. 1024 Gaussian (σ = patch_size/5) cand
 inside the patch disc are drawn from a fixed-seed generator and the 256 used are chosen by the
 paper's greedy decorrelation (mean closest to ½ first, |correlation| ≤ 0.2, relaxed by 0.05
 when short) on the steered tests of keypoints from a procedurally drawn training image.
-Descriptors are therefore not interchangeable with OpenCV's.
+Descriptors are therefore not interchangeable with OpenCV's. Keypoints equal OpenCV's on the
+same gray image (level 0 exactly; coarser levels up to the resize rounding), so differences in
+matching come from the pattern.
 
 Input: any format (u16 as round(v/257), f32 as round(clamp(v, 0, 1)·255), colour as BT.601
 luma). Images smaller than the border give no keypoints.

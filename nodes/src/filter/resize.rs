@@ -382,6 +382,12 @@ struct Taps {
     index: Vec<usize>,
     weight: Vec<f32>,
     fixed: Vec<i32>,
+    /// Two-tap (linear) only, for one-channel rows: the first of two adjacent source samples
+    /// and their 11-bit weights, the same sum as `index` / `fixed` (a tap pair clamped onto
+    /// one sample `i` reads `i − 1` with weight 0 and `i` with the full weight). Empty when the
+    /// source has fewer than 2 samples or the taps are not linear.
+    pair_start: Vec<u32>,
+    pair_fixed: Vec<[i16; 2]>,
 }
 
 /// The taps of one axis of `dst` samples from `src` under `method` (`scale` = src/dst).
@@ -429,11 +435,32 @@ fn axis_taps(src: usize, dst: usize, scale: f64, method: Interpolation) -> Taps 
             fixed.push(round_small(wk * COEF_SCALE) as i32);
         }
     }
+    let (mut pair_start, mut pair_fixed) = (Vec::new(), Vec::new());
+    if taps == 2 && src >= 2 && src <= u32::MAX as usize {
+        for (i, w) in index.chunks_exact(2).zip(fixed.chunks_exact(2)) {
+            let (start, w) = if i[1] == i[0] + 1 {
+                (i[0], [w[0] as i16, w[1] as i16])
+            } else {
+                // Both taps on one sample (clamped): read it as the second of a pair.
+                let at = i[0].max(1);
+                let full = (w[0] + w[1]) as i16;
+                if i[0] == 0 {
+                    (0, [full, 0])
+                } else {
+                    (at - 1, [0, full])
+                }
+            };
+            pair_start.push(start as u32);
+            pair_fixed.push(w);
+        }
+    }
     Taps {
         taps,
         index,
         weight,
         fixed,
+        pair_start,
+        pair_fixed,
     }
 }
 
@@ -564,6 +591,16 @@ where
 /// bits (OpenCV's SIMD vertical pass reads `S ≫ 4`).
 #[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+sse4.1"))]
 fn h_linear_u8<const C: usize>(row: &[u8], tx: &Taps, out: &mut [i16]) {
+    if C == 1 && row.len() >= 2 && tx.pair_start.len() == out.len() {
+        // One channel: adjacent pairs, one bounds check (start ≤ len − 2 by construction).
+        let last = row.len() - 2;
+        for ((o, &x), w) in out.iter_mut().zip(&tx.pair_start).zip(&tx.pair_fixed) {
+            let x = (x as usize).min(last);
+            let s = i32::from(row[x]) * i32::from(w[0]) + i32::from(row[x + 1]) * i32::from(w[1]);
+            *o = (s >> 4) as i16;
+        }
+        return;
+    }
     for ((o, idx), w) in out
         .chunks_exact_mut(C)
         .zip(tx.index.chunks_exact(2))
@@ -1178,6 +1215,39 @@ mod tests {
         ] {
             let run = || resize(&image, target, method).unwrap();
             assert_eq!(pool(1).install(run), pool(3).install(run));
+        }
+    }
+
+    /// The one-channel linear pass (adjacent pairs) against the general per-tap pass, which
+    /// three-channel images use: a gray image and its three-channel copy resize alike, for
+    /// shrinking and enlarging, including the clamped edge taps and 2-pixel sources.
+    #[test]
+    fn gray_linear_pairs_match_the_general_pass() {
+        for (sw, sh, seed) in [(2usize, 3usize, 1u64), (37, 29, 2), (160, 7, 3), (5, 40, 4)] {
+            let gray = random_u8(sw, sh, Channels::Gray, seed);
+            let rgb = Image::from_u8(
+                sw,
+                sh,
+                Channels::Rgb,
+                gray.as_u8()
+                    .unwrap()
+                    .iter()
+                    .flat_map(|&v| [v, v, v])
+                    .collect(),
+            )
+            .unwrap();
+            for (dw, dh) in [
+                (1, 1),
+                (sw * 5 / 6 + 1, sh),
+                (sw * 3 + 1, sh * 2 + 1),
+                (sw + 1, 2),
+            ] {
+                let target = Target::Size(dw, dh);
+                let a = resize(&gray, target, Interpolation::Bilinear).unwrap();
+                let b = resize(&rgb, target, Interpolation::Bilinear).unwrap();
+                let b0: Vec<u8> = b.as_u8().unwrap().iter().step_by(3).copied().collect();
+                assert_eq!(a.as_u8().unwrap(), b0.as_slice(), "{sw}×{sh} → {dw}×{dh}");
+            }
         }
     }
 
