@@ -98,7 +98,7 @@ luma) and reduced into a pyramid (`levels` levels, each `scale` times smaller; 0
 other factors a Gaussian blur of σ = 1/√(2·scale) and bilinear resampling). On each level the
 Scharr gradients of `previous` give the structure tensor `G = w ∗ (∇I ∇Iᵀ)`, `w` the normalised
 Gaussian window of side `window_px` (σ from the side as OpenCV's `getGaussianKernel`), once per
-level. Each of the `iterations` then warps `next` by the current flow (bilinear),
+level. Each of the `iterations` then warps `next` by the current flow (bicubic, Catmull–Rom),
 `I_t = next(x + u) − previous(x)` (zero where the warped point leaves the frame), forms
 `b = w ∗ (∇I · I_t)` and updates the flow by `−G⁻¹ b` (a Gauss–Newton step of the window's
 sum of squared differences). The flow of a level, resampled and scaled, starts the next finer

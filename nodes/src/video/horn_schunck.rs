@@ -109,7 +109,8 @@ Frames are converted to gray f32 on the 0–255 scale (u16 / 257, f32 · 255, RG
 luma) and reduced into a pyramid (`levels` levels, each `scale` times smaller; 0.5 uses `pyrDown`,
 other factors a Gaussian blur of σ = 1/√(2·scale) and bilinear resampling). Starting from zero on
 the coarsest level, each level runs `warps` times: `next` is warped by the current flow `(u, v)`
-(bilinear); `I_t = next(x + u) − previous(x)`, and `I_x`, `I_y` are the mean of the Scharr
+(bicubic, Catmull–Rom: bilinear warping biases sub-pixel flow by a few hundredths of a px);
+`I_t = next(x + u) − previous(x)`, and `I_x`, `I_y` are the mean of the Scharr
 gradients of `previous` and of the warped gradients of `next`. The increment `(du, dv)` then
 minimises `Σ (I_x du + I_y dv + I_t)² + α² Σ (|∇(u + du)|² + |∇(v + dv)|²)` (4-neighbour
 differences, no smoothing across the frame edge); its linear Euler–Lagrange equations are solved
@@ -133,8 +134,8 @@ in weakly textured regions. `alpha` trades detail for smoothness. The quadratic 
 motion boundaries blurry and outliers spread; the median filter is the cheap remedy.
 
 Differences: OpenCV's main module has no Horn–Schunck (`cv::optflow` in the contrib modules has
-DeepFlow / variational refinement with robust penalties, not this quadratic model). Flow is not
-presmoothed.
+DeepFlow / variational refinement with robust penalties, not this quadratic model). Frames are
+not presmoothed.
 
 References: B. K. P. Horn, B. G. Schunck, "Determining optical flow", Artificial Intelligence 17,
 1981; T. Brox, A. Bruhn, N. Papenberg, J. Weickert, "High accuracy optical flow estimation based
