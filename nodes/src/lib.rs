@@ -87,6 +87,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<describe::hog::Hog>()?;
     registry.register::<video::klt::TrackKlt>()?;
     registry.register::<video::block_match::BlockMatch>()?;
+    registry.register::<video::horn_schunck::FlowHornSchunck>()?;
+    registry.register::<video::dense_lk::FlowLk>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<analyze::evaluate::Evaluate>()?;

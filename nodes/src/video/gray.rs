@@ -78,7 +78,9 @@ pub fn gray_f32(image: &Image) -> Plane {
     from_image(image)
 }
 
-fn plane_of(image: &Image) -> Plane {
+/// The samples of an image as a plane: f32 gray images as they are (no rescaling), other
+/// formats through [`gray_f32`].
+pub(crate) fn plane_of(image: &Image) -> Plane {
     match image.data() {
         PixelData::F32(v) => Plane {
             width: image.width(),

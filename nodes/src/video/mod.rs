@@ -1,6 +1,9 @@
 //! Video: motion between frames (feature tracking, optical flow, block matching).
 
 pub mod block_match;
+pub mod dense_lk;
+pub mod flow;
 pub mod gray;
+pub mod horn_schunck;
 pub mod klt;
 pub mod synth;
