@@ -1961,7 +1961,11 @@ mod tests {
             };
             let got = if erosion { erode(&img, &e, 1, border) } else { dilate(&img, &e, 1, border) };
             prop_assert_eq!(samples(&got), reference(&img, &e, border, erosion));
-            // Iterated custom elements are repeated passes.
+            // Iterated custom elements are repeated passes. A full (rectangular) element is
+            // instead grown to (k − 1)·n + 1 as OpenCV does, which differs at reflected borders.
+            if e.is_full() {
+                return Ok(());
+            }
             let twice = if erosion { erode(&img, &e, 2, border) } else { dilate(&img, &e, 2, border) };
             let again = if erosion { erode(&got, &e, 1, border) } else { dilate(&got, &e, 1, border) };
             prop_assert_eq!(twice, again);
