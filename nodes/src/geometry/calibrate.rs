@@ -271,7 +271,7 @@ pub fn zhang_intrinsics(
     }
     let v0 = (b12 * b13 - b11 * b23) / den;
     let lambda = b33 - (b13 * b13 + v0 * (b12 * b13 - b11 * b23)) / b11;
-    if !(lambda / b11 > 0.0) {
+    if lambda / b11 <= 0.0 || (lambda / b11).is_nan() {
         return Err(bad());
     }
     let alpha = (lambda / b11).sqrt();
@@ -718,7 +718,7 @@ pub fn render_board_view(
             return board.background;
         }
         let lambda = -centre[2] / d[2];
-        if !(lambda > 0.0) {
+        if lambda <= 0.0 || lambda.is_nan() {
             return board.background;
         }
         let (bx, by) = (
@@ -768,7 +768,7 @@ pub fn infer_layout(points: &[[f64; 2]]) -> Option<(usize, usize)> {
     let n = points.len();
     let mut best: Option<(f64, (usize, usize))> = None;
     for cols in 2..=n / 2 {
-        if n % cols != 0 || n / cols < 2 {
+        if !n.is_multiple_of(cols) || n / cols < 2 {
             continue;
         }
         let rows = n / cols;

@@ -275,7 +275,7 @@ pub fn fisheye_theta(k: &[f64; 4], td: f64) -> Option<f64> {
         }
         let step = f / df;
         theta -= step;
-        if !theta.is_finite() || theta < 0.0 || theta >= std::f64::consts::PI {
+        if !theta.is_finite() || !(0.0..std::f64::consts::PI).contains(&theta) {
             return None;
         }
         if step.abs() <= 1e-15 * (1.0 + theta) {
@@ -588,7 +588,7 @@ mod tests {
         }
 
         #[test]
-        fn fisheye_round_trip(theta in 0.0f64..1.56, phi in 0.0f64..6.28,
+        fn fisheye_round_trip(theta in 0.0f64..1.56, phi in 0.0f64..std::f64::consts::TAU,
                               k1 in -0.05f64..0.05, k2 in -0.01f64..0.01) {
             let lens = Lens { k: k(), distortion: Distortion::Fisheye([k1, k2, 0.001, -0.0005]) };
             let ray = [theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos()];

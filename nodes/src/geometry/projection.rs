@@ -68,7 +68,7 @@ pub fn decompose_projection(p: &[f64; 12]) -> Option<Decomposition> {
     }
     let (u, q) = rq3(&m)?;
     let s = u[(2, 2)];
-    if !(s > 0.0) {
+    if s <= 0.0 || s.is_nan() {
         return None;
     }
     let k = u / s;

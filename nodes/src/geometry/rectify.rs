@@ -99,7 +99,7 @@ pub fn stereo_rectify(
 ) -> Result<StereoRectification, String> {
     let rm = to_na(r);
     let tv = Vector3::from(t);
-    if !(tv.norm() > 0.0) || !tv.iter().all(|v| v.is_finite()) {
+    if tv.norm() == 0.0 || !tv.iter().all(|v| v.is_finite()) {
         return Err("the baseline (translation between the cameras) must be non-zero".into());
     }
     let om = angle_axis(&rm);
@@ -153,11 +153,8 @@ pub fn stereo_rectify(
         ];
     }
     if zero_disparity {
-        for a in 0..2 {
-            let m = (cc[0][a] + cc[1][a]) * 0.5;
-            cc[0][a] = m;
-            cc[1][a] = m;
-        }
+        let m = [(cc[0][0] + cc[1][0]) * 0.5, (cc[0][1] + cc[1][1]) * 0.5];
+        cc = [m, m];
     } else {
         let a = if idx == 0 { 1 } else { 0 };
         let m = (cc[0][a] + cc[1][a]) * 0.5;
