@@ -563,6 +563,9 @@ mod tests {
             let r = *Rotation3::from_scaled_axis(Vector3::new(ax, ay, 0.1) * 0.3).matrix();
             let t = Vector3::new(tx, 0.1, tz);
             let n = Vector3::new(nx, 0.1, 1.0).normalize();
+            // Both cameras on the same side of the plane (det H > 0 before scaling): otherwise
+            // no point of the plane is in front of both and no decomposition can be visible.
+            prop_assume!(1.0 + n.dot(&(r.transpose() * t)) / d > 0.05);
             let (mut h, _, _) = setup(r, t, n, d);
             if f32_round { h = h.map(|v| f64::from(v as f32)); }
             let kk = k();
@@ -570,8 +573,19 @@ mod tests {
                 for s in &sols {
                     prop_assert!(s.r.iter().chain(s.t.iter()).chain(s.n.iter()).all(|v| v.is_finite()));
                 }
+                // Exact data: the true motion is among the solutions. The SVD's accuracy falls
+                // as two singular values of H approach each other, hence 1e-4° and 1e-6 rather
+                // than machine precision.
                 if !f32_round && t.norm() > 1e-3 {
-                    prop_assert!(sols.iter().any(|s| rotation_angle_deg(&s.r, &r) < 1e-6 && (s.t - t / d).norm() < 1e-7));
+                    let errors: Vec<(f64, f64)> = sols
+                        .iter()
+                        .map(|s| (rotation_angle_deg(&s.r, &r), (s.t - t / d).norm()))
+                        .collect();
+                    prop_assert!(
+                        errors.iter().any(|&(dr, dt)| dr < 1e-4 && dt < 1e-6),
+                        "errors {:?}",
+                        errors
+                    );
                 }
             }
         }
