@@ -17,7 +17,7 @@
 //! Visibility (OpenCV's `filterHomographyDecompByVisibleRefpoints`): a candidate survives when
 //! the reference points lie in front of both cameras, `nᵀ(K⁻¹x₁) > 0` and `(Rn)ᵀ(K⁻¹x₂) > 0`.
 
-use nalgebra::{Matrix3, SMatrix, Vector2, Vector3};
+use nalgebra::{Matrix3, Vector2, Vector3};
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
@@ -182,57 +182,15 @@ pub fn plane_pose_from_homography(h: &Matrix3<f64>, k: &Intrinsics) -> Result<Ca
 /// Homography (`x2 ∼ H x1`) from four or more point pairs by the normalized DLT. `None` for
 /// degenerate configurations.
 pub fn homography_dlt(x1: &[Vector2<f64>], x2: &[Vector2<f64>]) -> Option<Matrix3<f64>> {
-    let n = x1.len();
-    if n < 4 || x2.len() != n {
+    if x1.len() != x2.len() {
         return None;
     }
-    let norm = |p: &[Vector2<f64>]| -> Option<Matrix3<f64>> {
-        let c = p.iter().sum::<Vector2<f64>>() / n as f64;
-        let d = p.iter().map(|q| (q - c).norm()).sum::<f64>() / n as f64;
-        (d > 0.0 && d.is_finite()).then(|| {
-            let s = std::f64::consts::SQRT_2 / d;
-            Matrix3::new(s, 0.0, -s * c.x, 0.0, s, -s * c.y, 0.0, 0.0, 1.0)
-        })
-    };
-    let (t1, t2) = (norm(x1)?, norm(x2)?);
-    let mut ata = SMatrix::<f64, 9, 9>::zeros();
-    for (a, b) in x1.iter().zip(x2) {
-        let p = t1 * Vector3::new(a.x, a.y, 1.0);
-        let q = t2 * Vector3::new(b.x, b.y, 1.0);
-        let r1 = SMatrix::<f64, 9, 1>::from_row_slice(&[
-            0.0,
-            0.0,
-            0.0,
-            -p.x,
-            -p.y,
-            -1.0,
-            q.y * p.x,
-            q.y * p.y,
-            q.y,
-        ]);
-        let r2 = SMatrix::<f64, 9, 1>::from_row_slice(&[
-            p.x,
-            p.y,
-            1.0,
-            0.0,
-            0.0,
-            0.0,
-            -q.x * p.x,
-            -q.x * p.y,
-            -q.x,
-        ]);
-        ata += r1 * r1.transpose() + r2 * r2.transpose();
-    }
-    let eig = ata.symmetric_eigen();
-    let mut ord: [usize; 9] = std::array::from_fn(|i| i);
-    ord.sort_by(|&i, &j| eig.eigenvalues[i].total_cmp(&eig.eigenvalues[j]));
-    if !gt(eig.eigenvalues[ord[1]], 1e-14 * eig.eigenvalues[ord[8]]) {
-        return None;
-    }
-    let h = eig.eigenvectors.column(ord[0]);
-    let hn = Matrix3::from_fn(|r, c| h[3 * r + c]);
-    let hh = t2.try_inverse()? * hn * t1;
-    hh.iter().all(|v| v.is_finite()).then_some(hh)
+    let pairs: Vec<_> = x1
+        .iter()
+        .zip(x2)
+        .map(|(a, b)| [[a.x, a.y], [b.x, b.y]])
+        .collect();
+    crate::geometry::homography::dlt(&pairs)
 }
 
 /// Pose `camera_from_marker` of a square marker of side `side` from its four corners in
