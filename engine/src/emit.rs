@@ -62,7 +62,7 @@ use std::fs;
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::image_io::{self, ImageIoError, write_atomic_with};
 use crate::summary::fmt_sig6;
@@ -245,7 +245,8 @@ impl<'a> From<&'a Matrix> for MatrixJson<'a> {
     }
 }
 
-#[derive(Serialize)]
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 struct CameraJson {
     width: u32,
     height: u32,
@@ -257,8 +258,8 @@ struct CameraJson {
     distortion: DistortionJson,
 }
 
-#[derive(Serialize)]
-#[serde(tag = "model", rename_all = "snake_case")]
+#[derive(Serialize, Deserialize)]
+#[serde(tag = "model", rename_all = "snake_case", deny_unknown_fields)]
 enum DistortionJson {
     None,
     RadialTangential {
@@ -297,6 +298,61 @@ impl From<&Camera> for CameraJson {
             distortion,
         }
     }
+}
+
+/// Reads a camera written by [`emit_value`] (the `Camera` row of the table in the
+/// [module docs](self)): `{"width","height","fx","fy","cx","cy","skew","distortion":D}`.
+/// Unknown or missing keys, non-finite numbers, non-positive focal lengths and a zero image
+/// size are errors (the message names the problem). `"none"` with zero skew gives a
+/// [`CameraModel::Pinhole`](crate::value::CameraModel::Pinhole) camera, radial–tangential (or
+/// `"none"` with skew) a
+/// [`CameraModel::RadialTangential`](crate::value::CameraModel::RadialTangential) one and
+/// fisheye a [`CameraModel::Fisheye`](crate::value::CameraModel::Fisheye) one, so that the
+/// camera read back emits the same text again.
+pub fn camera_from_json(text: &str) -> Result<Camera, String> {
+    let c: CameraJson = serde_json::from_str(text).map_err(|e| format!("not a camera: {e}"))?;
+    if c.width == 0 || c.height == 0 {
+        return Err(format!(
+            "image size must be positive, got {}×{}",
+            c.width, c.height
+        ));
+    }
+    let (distortion, coefficients): (Distortion, Vec<f64>) = match c.distortion {
+        DistortionJson::None => (Distortion::None, Vec::new()),
+        DistortionJson::RadialTangential { k1, k2, p1, p2, k3 } => (
+            Distortion::RadialTangential([k1, k2, p1, p2, k3]),
+            vec![k1, k2, p1, p2, k3],
+        ),
+        DistortionJson::Fisheye { k1, k2, k3, k4 } => {
+            (Distortion::Fisheye([k1, k2, k3, k4]), vec![k1, k2, k3, k4])
+        }
+    };
+    let all = [c.fx, c.fy, c.cx, c.cy, c.skew];
+    if !all.iter().chain(&coefficients).all(|v| v.is_finite()) {
+        return Err("camera has a null or non-finite parameter".into());
+    }
+    if !(c.fx > 0.0 && c.fy > 0.0) {
+        return Err(format!(
+            "focal lengths must be > 0, got fx = {}, fy = {}",
+            c.fx, c.fy
+        ));
+    }
+    let k = crate::value::Intrinsics {
+        fx: c.fx,
+        fy: c.fy,
+        cx: c.cx,
+        cy: c.cy,
+        skew: c.skew,
+    };
+    if matches!(distortion, Distortion::None) && c.skew == 0.0 {
+        return Ok(Camera {
+            model: crate::value::CameraModel::Pinhole,
+            width: c.width,
+            height: c.height,
+            params: vec![c.fx, c.fy, c.cx, c.cy],
+        });
+    }
+    Ok(Camera::from_parts(c.width, c.height, k, distortion))
 }
 
 /// A pose as a row-major rotation matrix and a translation.
@@ -797,6 +853,73 @@ mod tests {
         let files = emit_value(dir, "v", &value).unwrap();
         assert_eq!(files, [dir.join("v.json")]);
         read_json(&files[0])
+    }
+
+    #[test]
+    fn cameras_read_back_to_the_same_text() {
+        let dir = scratch("camera_back");
+        let cameras = [
+            Camera {
+                model: CameraModel::SimpleRadial,
+                width: 640,
+                height: 480,
+                params: vec![500.0, 320.0, 240.0, 0.01],
+            },
+            Camera {
+                model: CameraModel::Pinhole,
+                width: 64,
+                height: 48,
+                params: vec![50.5, 51.0, 32.25, 24.0],
+            },
+            Camera::from_parts(
+                640,
+                480,
+                Intrinsics {
+                    fx: 500.0,
+                    fy: 501.0,
+                    cx: 320.0,
+                    cy: 240.0,
+                    skew: 0.25,
+                },
+                Distortion::Fisheye([0.1, -0.2, 0.01, 0.002]),
+            ),
+        ];
+        for camera in cameras {
+            let files = emit_value(&dir, "c", &Value::Camera(Arc::new(camera.clone()))).unwrap();
+            let text = fs::read_to_string(&files[0]).unwrap();
+            let back = camera_from_json(&text).unwrap();
+            assert_eq!(back.intrinsics(), camera.intrinsics());
+            assert_eq!(back.distortion(), camera.distortion());
+            let again = emit_value(&dir, "d", &Value::Camera(Arc::new(back))).unwrap();
+            assert_eq!(fs::read_to_string(&again[0]).unwrap(), text);
+        }
+        for (bad, why) in [
+            ("", "not a camera"),
+            ("{\"width\":1}", "missing field"),
+            (
+                "{\"width\":0,\"height\":4,\"fx\":1,\"fy\":1,\"cx\":0,\"cy\":0,\"skew\":0,\"distortion\":{\"model\":\"none\"}}",
+                "image size",
+            ),
+            (
+                "{\"width\":4,\"height\":4,\"fx\":-1,\"fy\":1,\"cx\":0,\"cy\":0,\"skew\":0,\"distortion\":{\"model\":\"none\"}}",
+                "focal",
+            ),
+            (
+                "{\"width\":4,\"height\":4,\"fx\":1,\"fy\":1,\"cx\":null,\"cy\":0,\"skew\":0,\"distortion\":{\"model\":\"none\"}}",
+                "not a camera",
+            ),
+            (
+                "{\"width\":4,\"height\":4,\"fx\":1,\"fy\":1,\"cx\":0,\"cy\":0,\"skew\":0,\"distortion\":{\"model\":\"kannala\"}}",
+                "unknown variant",
+            ),
+            (
+                "{\"width\":4,\"height\":4,\"fx\":1,\"fy\":1,\"cx\":0,\"cy\":0,\"skew\":0,\"f\":2,\"distortion\":{\"model\":\"none\"}}",
+                "unknown field",
+            ),
+        ] {
+            let e = camera_from_json(bad).unwrap_err();
+            assert!(e.contains(why), "{bad}: {e}");
+        }
     }
 
     #[test]

@@ -105,6 +105,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<io::read_image::ReadImage>()?;
     registry.register::<io::write_image::WriteImage>()?;
     registry.register::<io::read_correspondences::ReadCorrespondences>()?;
+    registry.register::<io::read_camera::ReadCamera>()?;
     registry.register::<geometry::two_view::FindHomography>()?;
     registry.register::<geometry::two_view::FindFundamental>()?;
     registry.register::<geometry::two_view::MatchedPoints>()?;
