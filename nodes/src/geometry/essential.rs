@@ -637,7 +637,7 @@ pub fn essential_candidates(e: &Matrix3<f64>) -> Option<[(Matrix3<f64>, Vector3<
 /// Depths of a correspondence under `(R, t)` (midpoint of the rays, camera 1 frame) and the
 /// parallax angle (radians): `(z1, z2, angle)`; `None` for parallel rays.
 #[inline]
-fn depths_and_parallax(
+pub(crate) fn depths_and_parallax(
     r: &Matrix3<f64>,
     t: &Vector3<f64>,
     x1: [f64; 2],

@@ -34,7 +34,7 @@ ocellus_engine::param_enum! {
 }
 
 impl RobustMethod {
-    fn method(self) -> Method {
+    pub(crate) fn method(self) -> Method {
         match self {
             RobustMethod::Ransac => Method::Ransac,
             RobustMethod::Msac => Method::Msac,
@@ -206,7 +206,7 @@ pub fn find_fundamental(
     )
 }
 
-fn matrix_value(m: &Matrix3<f64>) -> Value {
+pub(crate) fn matrix_value(m: &Matrix3<f64>) -> Value {
     let data: Vec<f64> = (0..9).map(|i| m[(i / 3, i % 3)]).collect();
     Value::Matrix(Arc::new(Matrix {
         rows: 3,
@@ -226,7 +226,7 @@ pub fn h33_normalized(h: &Matrix3<f64>) -> Matrix3<f64> {
     }
 }
 
-fn mask_value(mask: &[bool]) -> Value {
+pub(crate) fn mask_value(mask: &[bool]) -> Value {
     Value::Matrix(Arc::new(Matrix {
         rows: mask.len(),
         cols: 1,
@@ -244,7 +244,7 @@ fn points<'a>(inputs: &Inputs<'a>, port: &str) -> Result<&'a [[f64; 2]], OpError
     }
 }
 
-fn input_data(inputs: &Inputs<'_>) -> Result<Vec<Correspondence>, OpError> {
+pub(crate) fn input_data(inputs: &Inputs<'_>) -> Result<Vec<Correspondence>, OpError> {
     let left = points(inputs, "points_left")?;
     let right = points(inputs, "points_right")?;
     if left.len() != right.len() {
@@ -260,7 +260,7 @@ fn input_data(inputs: &Inputs<'_>) -> Result<Vec<Correspondence>, OpError> {
     Ok(left.iter().zip(right).map(|(a, b)| [*a, *b]).collect())
 }
 
-fn check_robust(threshold: f64, confidence: f64, max_trials: u32) -> Result<(), String> {
+pub(crate) fn check_robust(threshold: f64, confidence: f64, max_trials: u32) -> Result<(), String> {
     if !(threshold.is_finite() && threshold > 0.0) {
         return Err(format!("`threshold_px` must be > 0, got {threshold}"));
     }
@@ -273,7 +273,7 @@ fn check_robust(threshold: f64, confidence: f64, max_trials: u32) -> Result<(), 
     Ok(())
 }
 
-fn robust_inputs() -> Vec<PortSpec> {
+pub(crate) fn robust_inputs() -> Vec<PortSpec> {
     vec![
         PortSpec::new(
             "points_left",
@@ -346,7 +346,7 @@ robust_params!(
      Default 1."
 );
 
-fn options(
+pub(crate) fn options(
     method: RobustMethod,
     threshold: f64,
     confidence: f64,
