@@ -19,6 +19,7 @@ const SNAPSHOTTED: &[&str] = &[
     "ransac_homography.ron",
     "segment.ron",
     "two_branches.ron",
+    "two_view.ron",
 ];
 
 fn summary(graph: &str, threads: usize) -> String {
@@ -83,6 +84,11 @@ fn segment() {
 #[test]
 fn two_branches() {
     check_graph("two_branches.ron");
+}
+
+#[test]
+fn two_view() {
+    check_graph("two_view.ron");
 }
 
 #[test]

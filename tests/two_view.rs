@@ -24,14 +24,23 @@ fn generated_two_view_fixture_is_reproducible() {
     if std::env::var_os("OCELLUS_WRITE_FIXTURES").is_some() {
         ocellus_engine::image_io::write_image(&data.join("two_view_left.png"), &left).unwrap();
         ocellus_engine::image_io::write_image(&data.join("two_view_right.png"), &right).unwrap();
-        ocellus_engine::emit::emit_value(&data, "two_view_camera", &Value::Camera(Arc::new(camera.clone())))
-            .unwrap();
+        ocellus_engine::emit::emit_value(
+            &data,
+            "two_view_camera",
+            &Value::Camera(Arc::new(camera.clone())),
+        )
+        .unwrap();
     }
     let limits = ocellus_engine::image_io::DecodeLimits::default();
     for (name, image) in [("two_view_left.png", &left), ("two_view_right.png", &right)] {
         let path = data.join(name);
         let kept = ocellus_engine::image_io::read_image(&path, &limits).unwrap();
-        assert_eq!(&kept, image, "{} differs from its generator", path.display());
+        assert_eq!(
+            &kept,
+            image,
+            "{} differs from its generator",
+            path.display()
+        );
         let size = std::fs::metadata(&path).unwrap().len();
         assert!(size < 200_000, "{name} is {size} bytes");
     }
@@ -60,7 +69,10 @@ fn output<'a>(outputs: &'a [(String, Value)], name: &str) -> &'a Value {
 fn rt(pose: &Pose) -> (Matrix3<f64>, Vector3<f64>) {
     let [w, x, y, z] = pose.rotation;
     let q = UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
-    (*q.to_rotation_matrix().matrix(), Vector3::from(pose.translation))
+    (
+        *q.to_rotation_matrix().matrix(),
+        Vector3::from(pose.translation),
+    )
 }
 
 fn angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
@@ -81,7 +93,10 @@ fn two_view_graph_recovers_the_rendered_motion_and_scene() {
     let (_, c2) = two_view_cameras();
     let r_err = {
         let m = r.transpose() * c2.r;
-        ((m.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
+        ((m.trace() - 1.0) / 2.0)
+            .clamp(-1.0, 1.0)
+            .acos()
+            .to_degrees()
     };
     let t_err = angle_deg(&t, &c2.t);
     assert!(r_err < 0.5, "rotation error {r_err}°");
@@ -102,7 +117,10 @@ fn two_view_graph_recovers_the_rendered_motion_and_scene() {
         .iter()
         .map(|p| {
             let x = Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])) * scale;
-            let d = scene.iter().map(|q| q.distance(&x)).fold(f64::INFINITY, f64::min);
+            let d = scene
+                .iter()
+                .map(|q| q.distance(&x))
+                .fold(f64::INFINITY, f64::min);
             d / x.norm().max(1e-9)
         })
         .collect();
@@ -115,13 +133,11 @@ fn two_view_graph_recovers_the_rendered_motion_and_scene() {
 
 #[test]
 fn a_planar_pair_is_reported_as_a_homography() {
-    let outputs = run(
-        "graphs/two_view.ron",
-        &[
-            "left.path=data/features_left.png",
-            "right.path=data/features_right.png",
-        ],
-    );
+    // `--set` paths resolve against the working directory, not the graph's folder.
+    let data = root().join("graphs/data");
+    let left = format!("left.path={}", data.join("features_left.png").display());
+    let right = format!("right.path={}", data.join("features_right.png").display());
+    let outputs = run("graphs/two_view.ron", &[&left, &right]);
     let Value::Text(model) = output(&outputs, "model") else {
         panic!("model");
     };

@@ -29,8 +29,8 @@ use super::pose_util::{Intrinsics, input_points2, nearest_rotation, pose_from_rt
 use super::ransac::{RobustOptions, estimate};
 use super::robust::Estimator;
 use super::two_view::{
-    RobustMethod, TwoViewEstimate, check_robust, find_homography, gric, h33_normalized,
-    mask_value, matrix_value, options,
+    RobustMethod, TwoViewEstimate, check_robust, find_homography, gric, h33_normalized, mask_value,
+    matrix_value, options,
 };
 
 /// A calibrated view of the correspondences: pinhole intrinsics and the points in ideal
@@ -218,6 +218,12 @@ pub fn find_essential(
     refine: bool,
     min_parallax_deg: f64,
 ) -> Result<EssentialEstimate, String> {
+    if let Some(i) = data
+        .iter()
+        .position(|c| !c.iter().flatten().all(|v| v.is_finite()))
+    {
+        return Err(format!("correspondence {i} is not finite"));
+    }
     let normalized: Vec<NormalizedPair> = data
         .iter()
         .map(|c| (k1.normalize(c[0]).into(), k2.normalize(c[1]).into()))
@@ -395,6 +401,12 @@ pub fn relative_pose(
     k2: &Intrinsics,
     o: &RelativePoseOptions,
 ) -> Result<RelativePose, String> {
+    if let Some(i) = data
+        .iter()
+        .position(|c| !c.iter().flatten().all(|v| v.is_finite()))
+    {
+        return Err(format!("correspondence {i} is not finite"));
+    }
     let n = data.len();
     let homography =
         find_homography(data, &o.h, o.refine).map_err(|e| format!("no homography: {e}"))?;
@@ -584,7 +596,12 @@ fn calibrated_inputs(
     };
     let a = ideal_points(c1, &left).map_err(|e| OpError::input("camera", e))?;
     let b = ideal_points(c2, &right).map_err(|e| OpError::input("camera2", e))?;
-    let data = a.points.iter().zip(&b.points).map(|(p, q)| [*p, *q]).collect();
+    let data = a
+        .points
+        .iter()
+        .zip(&b.points)
+        .map(|(p, q)| [*p, *q])
+        .collect();
     Ok((a.k, b.k, data))
 }
 
@@ -939,5 +956,363 @@ impl Operator for RelativePoseOp {
             .with("points_left", Value::Points2D(left.into()))
             .with("points_right", Value::Points2D(right.into()))
             .with("report", Value::metrics(rp.report)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::describe::brief::SplitMix64;
+    use crate::geometry::camera::distort_rt;
+    use crate::geometry::pose_util::{rotation_angle_deg, vector_angle_deg};
+    use nalgebra::Rotation3;
+    use ocellus_engine::value::CameraModel;
+    use std::sync::Arc;
+
+    const K: Intrinsics = Intrinsics {
+        fx: 500.0,
+        fy: 500.0,
+        cx: 320.0,
+        cy: 240.0,
+    };
+
+    struct Truth {
+        r: Matrix3<f64>,
+        t: Vector3<f64>,
+        data: Vec<Correspondence>,
+        inlier: Vec<bool>,
+    }
+
+    /// Points seen by `K[I|0]` and `K[R|t]`: depths 4–10 (or on the plane z = 6 + 0.3x when
+    /// `planar`), pixel noise `sigma`, a share `outliers` of random right points.
+    fn scene(
+        t: Vector3<f64>,
+        planar: bool,
+        n: usize,
+        sigma: f64,
+        outliers: f64,
+        seed: u64,
+    ) -> Truth {
+        let r = *Rotation3::from_euler_angles(0.03, -0.12, 0.02).matrix();
+        let mut rng = SplitMix64::new(seed);
+        let (mut data, mut inlier) = (Vec::new(), Vec::new());
+        while data.len() < n {
+            let (u, v) = (rng.uniform() * 640.0, rng.uniform() * 480.0);
+            let ray = Vector3::new((u - K.cx) / K.fx, (v - K.cy) / K.fy, 1.0);
+            let z = if planar {
+                6.0 / (1.0 - 0.3 * ray.x)
+            } else {
+                4.0 + 6.0 * rng.uniform()
+            };
+            let x = ray * z;
+            let y = r * x + t;
+            let q = K.project(&y);
+            if y.z <= 0.0 || !(0.0..640.0).contains(&q[0]) || !(0.0..480.0).contains(&q[1]) {
+                continue;
+            }
+            let out = rng.uniform() < outliers;
+            let q = if out {
+                [rng.uniform() * 640.0, rng.uniform() * 480.0]
+            } else {
+                [q[0] + sigma * rng.normal(), q[1] + sigma * rng.normal()]
+            };
+            data.push([[u + sigma * rng.normal(), v + sigma * rng.normal()], q]);
+            inlier.push(!out);
+        }
+        Truth { r, t, data, inlier }
+    }
+
+    fn opts(threshold: f64) -> RobustOptions {
+        RobustOptions {
+            threshold,
+            ..RobustOptions::default()
+        }
+    }
+
+    fn rp_options() -> RelativePoseOptions {
+        RelativePoseOptions {
+            h: opts(3.0),
+            e: opts(1.0),
+            sigma_px: 1.0,
+            refine: true,
+            rotation_px: 1.0,
+            min_parallax_deg: 0.5,
+        }
+    }
+
+    #[test]
+    fn essential_exact_data_and_outliers() {
+        // Noise-free: the pose is exact and every point is an inlier in front.
+        let s = scene(Vector3::new(1.0, 0.1, 0.2), false, 60, 0.0, 0.0, 1);
+        let est = find_essential(&s.data, &K, &K, &opts(1.0), true, 0.5).unwrap();
+        assert!(rotation_angle_deg(&est.r, &s.r) < 1e-6);
+        assert!(vector_angle_deg(&est.t, &s.t) < 1e-5);
+        assert_eq!(est.inliers, 60);
+        assert!(est.front_mask.iter().all(|&b| b));
+        assert!((est.t.norm() - 1.0).abs() < 1e-12 && (est.e.norm() - 1.0).abs() < 1e-12);
+        // E = [t]× R of the reported pose.
+        let e = skew(&est.t) * est.r;
+        assert!((e / e.norm() - est.e).norm() < 1e-12);
+        // Noise and 40 % outliers.
+        let s = scene(Vector3::new(-0.8, 0.2, 0.3), false, 300, 0.5, 0.4, 2);
+        let est = find_essential(&s.data, &K, &K, &opts(1.5), true, 0.5).unwrap();
+        assert!(
+            rotation_angle_deg(&est.r, &s.r) < 0.2,
+            "{}",
+            rotation_angle_deg(&est.r, &s.r)
+        );
+        assert!(
+            vector_angle_deg(&est.t, &s.t) < 2.0,
+            "{}",
+            vector_angle_deg(&est.t, &s.t)
+        );
+        let true_in = s.inlier.iter().filter(|&&b| b).count();
+        let found_true = est
+            .inlier_mask
+            .iter()
+            .zip(&s.inlier)
+            .filter(|(a, b)| **a && **b)
+            .count();
+        assert!(
+            found_true as f64 >= 0.95 * true_in as f64,
+            "{found_true}/{true_in}"
+        );
+        assert!(est.inliers <= true_in + 10, "{} > {true_in}", est.inliers);
+        assert!(est.runner_up < est.points_in_front / 2);
+    }
+
+    #[test]
+    fn refinement_lowers_the_sampson_error() {
+        let s = scene(Vector3::new(1.0, 0.0, 0.1), false, 100, 0.5, 0.0, 3);
+        let normalized: Vec<NormalizedPair> = s
+            .data
+            .iter()
+            .map(|c| (K.normalize(c[0]).into(), K.normalize(c[1]).into()))
+            .collect();
+        let est = EssentialEstimator { focal_px: 500.0 };
+        let rough = skew(&Vector3::new(1.0, 0.05, 0.1).normalize())
+            * Rotation3::from_euler_angles(0.035, -0.115, 0.02).into_inner();
+        let cost = |e: &Matrix3<f64>| {
+            let mut r = vec![0.0; normalized.len()];
+            est.residuals(e, &normalized, &mut r);
+            r.iter().sum::<f64>()
+        };
+        let refined = refine_essential(&rough, &normalized, 500.0);
+        assert!(
+            cost(&refined) < 0.5 * cost(&rough),
+            "{} {}",
+            cost(&refined),
+            cost(&rough)
+        );
+        // The truth's cost is near the refined one (noise only).
+        let truth = skew(&s.t) * s.r;
+        assert!(cost(&refined) <= cost(&(truth / truth.norm())) * 1.0001);
+        // Too few data: unchanged.
+        assert_eq!(refine_essential(&rough, &normalized[..5], 500.0), rough);
+    }
+
+    #[test]
+    fn model_selection_general_planar_rotation() {
+        let o = rp_options();
+        let general = scene(Vector3::new(1.0, 0.1, 0.2), false, 200, 0.3, 0.2, 4);
+        let p = relative_pose(&general.data, &K, &K, &o).unwrap();
+        assert_eq!(p.model, MotionModel::Essential);
+        assert!(rotation_angle_deg(&p.r, &general.r) < 0.2);
+        assert!(vector_angle_deg(&p.t, &general.t) < 2.0);
+        assert_eq!(p.report.get("planar_or_rotation"), Some(&0.0));
+
+        let planar = scene(Vector3::new(1.0, 0.1, 0.2), true, 200, 0.3, 0.2, 5);
+        let p = relative_pose(&planar.data, &K, &K, &o).unwrap();
+        assert_eq!(p.model, MotionModel::Homography);
+        assert_eq!(p.report.get("planar_or_rotation"), Some(&1.0));
+        // Both cameras see the plane from the front: one of the two physical solutions.
+        assert!((p.t.norm() - 1.0).abs() < 1e-9);
+        assert!(p.mask.iter().filter(|&&b| b).count() >= 140);
+
+        let rotation = scene(Vector3::zeros(), false, 200, 0.3, 0.2, 6);
+        let p = relative_pose(&rotation.data, &K, &K, &o).unwrap();
+        assert_eq!(p.model, MotionModel::Rotation);
+        assert_eq!(p.t, Vector3::zeros());
+        assert!(rotation_angle_deg(&p.r, &rotation.r) < 0.1);
+        assert!(p.report["rotation_median_px"] < 1.0);
+    }
+
+    #[test]
+    fn planar_scene_with_off_plane_points_picks_the_true_solution() {
+        // Mostly a plane, a few points off it: GRIC still prefers H, and the off-plane points
+        // decide between the two decompositions.
+        let mut s = scene(Vector3::new(1.0, 0.1, 0.2), true, 200, 0.2, 0.0, 7);
+        let off = scene(Vector3::new(1.0, 0.1, 0.2), false, 12, 0.2, 0.0, 8);
+        s.data.extend(off.data);
+        let p = relative_pose(&s.data, &K, &K, &rp_options()).unwrap();
+        assert_eq!(p.model, MotionModel::Homography);
+        assert!(
+            rotation_angle_deg(&p.r, &s.r) < 0.5,
+            "{}",
+            rotation_angle_deg(&p.r, &s.r)
+        );
+        assert!(
+            vector_angle_deg(&p.t, &s.t) < 3.0,
+            "{}",
+            vector_angle_deg(&p.t, &s.t)
+        );
+    }
+
+    #[test]
+    fn degenerate_input_is_an_error_not_nan() {
+        let o = rp_options();
+        assert!(relative_pose(&[], &K, &K, &o).is_err());
+        let same = vec![[[100.0, 100.0], [120.0, 90.0]]; 30];
+        assert!(relative_pose(&same, &K, &K, &o).is_err());
+        assert!(find_essential(&same, &K, &K, &opts(1.0), true, 0.5).is_err());
+        let few = scene(Vector3::x(), false, 4, 0.0, 0.0, 9);
+        assert!(find_essential(&few.data, &K, &K, &opts(1.0), true, 0.5).is_err());
+        let mut nan = scene(Vector3::x(), false, 20, 0.0, 0.0, 10).data;
+        nan[3][1][0] = f64::NAN;
+        assert!(find_essential(&nan, &K, &K, &opts(1.0), true, 0.5).is_err());
+        assert!(relative_pose(&nan, &K, &K, &o).is_err());
+    }
+
+    #[test]
+    fn distorted_points_are_undistorted_and_skew_is_rejected() {
+        let d = [-0.2, 0.05, 0.001, -0.002, 0.0];
+        let camera = Camera::from_parts(
+            640,
+            480,
+            ocellus_engine::value::Intrinsics {
+                fx: 500.0,
+                fy: 500.0,
+                cx: 320.0,
+                cy: 240.0,
+                skew: 0.0,
+            },
+            Distortion::RadialTangential(d),
+        );
+        let ideal = [[100.0, 80.0], [320.0, 240.0], [600.0, 400.0]];
+        let distorted: Vec<[f64; 2]> = ideal
+            .iter()
+            .map(|p| {
+                let n = K.normalize(*p);
+                K.denormalize(&distort_rt(&d, [n.x, n.y]).into())
+            })
+            .collect();
+        let back = ideal_points(&camera, &distorted).unwrap();
+        for (a, b) in back.points.iter().zip(&ideal) {
+            assert!((a[0] - b[0]).abs() < 1e-6 && (a[1] - b[1]).abs() < 1e-6);
+        }
+        let skewed = Camera {
+            params: vec![500.0, 500.0, 320.0, 240.0, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0],
+            ..camera
+        };
+        assert!(ideal_points(&skewed, &ideal).unwrap_err().contains("skew"));
+    }
+
+    fn run_op<O: Operator>(op: &O, specs: &[PortSpec], values: &[Option<Value>]) -> Outputs {
+        let ctx = RunContext {
+            node: "n".into(),
+            threads: 1,
+            element: None,
+        };
+        op.run(&ctx, &Inputs::new(specs, values)).unwrap()
+    }
+
+    #[test]
+    fn operators_run_and_reject_bad_params() {
+        let s = scene(Vector3::new(1.0, 0.1, 0.2), false, 120, 0.3, 0.1, 11);
+        let left: Vec<[f64; 2]> = s.data.iter().map(|c| c[0]).collect();
+        let right: Vec<[f64; 2]> = s.data.iter().map(|c| c[1]).collect();
+        let camera = Camera {
+            model: CameraModel::Pinhole,
+            width: 640,
+            height: 480,
+            params: vec![500.0, 500.0, 320.0, 240.0],
+        };
+        let values = vec![
+            Some(Value::Points2D(Arc::new(left.clone()))),
+            Some(Value::Points2D(Arc::new(right.clone()))),
+            Some(Value::Camera(Arc::new(camera.clone()))),
+            None,
+        ];
+        let op = FindEssential::new(FindEssentialParams::default()).unwrap();
+        let mut out = run_op(&op, &FindEssential::inputs(), &values);
+        let Some(Value::Pose(pose)) = out.take("pose") else {
+            panic!("no pose")
+        };
+        let (r, t) = crate::geometry::pose_util::rt_from_pose(&pose).unwrap();
+        assert!(rotation_angle_deg(&r, &s.r) < 0.3 && vector_angle_deg(&t, &s.t) < 3.0);
+        assert!(matches!(out.take("E"), Some(Value::Matrix(m)) if m.rows == 3 && m.cols == 3));
+        let op = RelativePoseOp::new(RelativePoseParams::default()).unwrap();
+        let mut out = run_op(&op, &RelativePoseOp::inputs(), &values);
+        assert_eq!(out.take("model"), Some(Value::Text("essential".into())));
+        let Some(Value::Integer(n)) = out.take("inliers") else {
+            panic!()
+        };
+        let Some(Value::Points2D(pl)) = out.take("points_left") else {
+            panic!()
+        };
+        assert_eq!(pl.len() as i64, n);
+        assert!(n >= 90);
+        // A rotation gives empty point lists (nothing to triangulate).
+        let rot = scene(Vector3::zeros(), false, 120, 0.3, 0.1, 12);
+        let rvalues = vec![
+            Some(Value::Points2D(Arc::new(
+                rot.data.iter().map(|c| c[0]).collect(),
+            ))),
+            Some(Value::Points2D(Arc::new(
+                rot.data.iter().map(|c| c[1]).collect(),
+            ))),
+            Some(Value::Camera(Arc::new(camera))),
+            None,
+        ];
+        let mut out = run_op(&op, &RelativePoseOp::inputs(), &rvalues);
+        assert_eq!(out.take("model"), Some(Value::Text("rotation".into())));
+        assert!(matches!(out.take("points_left"), Some(Value::Points2D(p)) if p.is_empty()));
+        assert!(matches!(out.take("pose2"), Some(Value::Pose(p)) if p.translation == [0.0; 3]));
+        // Bad parameters.
+        let bad = [
+            FindEssentialParams {
+                threshold_px: 0.0,
+                ..FindEssentialParams::default()
+            },
+            FindEssentialParams {
+                min_parallax_deg: f64::NAN,
+                ..FindEssentialParams::default()
+            },
+            FindEssentialParams {
+                confidence: 1.0,
+                ..FindEssentialParams::default()
+            },
+        ];
+        for p in bad {
+            assert!(FindEssential::new(p).is_err());
+        }
+        assert!(
+            RelativePoseOp::new(RelativePoseParams {
+                sigma_px: 0.0,
+                ..RelativePoseParams::default()
+            })
+            .is_err()
+        );
+        assert!(
+            RelativePoseOp::new(RelativePoseParams {
+                rotation_px: f64::INFINITY,
+                ..RelativePoseParams::default()
+            })
+            .is_err()
+        );
+        // Mismatched lengths are an input error.
+        let mismatched = vec![
+            Some(Value::Points2D(Arc::new(left))),
+            Some(Value::Points2D(Arc::new(right[..5].to_vec()))),
+            values[2].clone(),
+            None,
+        ];
+        let ctx = RunContext {
+            node: "n".into(),
+            threads: 1,
+            element: None,
+        };
+        let specs = RelativePoseOp::inputs();
+        assert!(op.run(&ctx, &Inputs::new(&specs, &mismatched)).is_err());
     }
 }

@@ -149,9 +149,8 @@ fn value_noise(a: f64, b: f64, cell: f64, seed: u64) -> f64 {
 /// Gray level in [0, 1] of the procedural texture at surface coordinates `(a, b)` (world
 /// units).
 pub fn texture(a: f64, b: f64, seed: u64) -> f64 {
-    let mut g = 0.25
-        + 0.4 * value_noise(a, b, 0.4, seed)
-        + 0.25 * value_noise(a, b, 0.11, seed ^ 0x5555);
+    let mut g =
+        0.25 + 0.4 * value_noise(a, b, 0.4, seed) + 0.25 * value_noise(a, b, 0.11, seed ^ 0x5555);
     // One shape per cell of a 0.3-unit grid: a disc or a square, sometimes none.
     let cell = 0.3;
     let (ci, cj) = ((a / cell).floor() as i64, (b / cell).floor() as i64);
@@ -212,11 +211,7 @@ impl SyntheticCamera {
 }
 
 /// The nearest hit of a ray: `(ray parameter, quad index, a, b)`.
-pub fn cast(
-    quads: &[Quad],
-    o: &Vector3<f64>,
-    d: &Vector3<f64>,
-) -> Option<(f64, usize, f64, f64)> {
+pub fn cast(quads: &[Quad], o: &Vector3<f64>, d: &Vector3<f64>) -> Option<(f64, usize, f64, f64)> {
     let mut best: Option<(f64, usize, f64, f64)> = None;
     for (i, q) in quads.iter().enumerate() {
         if let Some((s, a, b)) = q.hit(o, d)
@@ -350,10 +345,18 @@ mod tests {
             v: Vector3::new(0.0, 2.0, 0.0),
             seed: 0,
         };
-        let (s, a, b) = q.hit(&Vector3::zeros(), &Vector3::new(0.1, 0.0, 1.0)).unwrap();
+        let (s, a, b) = q
+            .hit(&Vector3::zeros(), &Vector3::new(0.1, 0.0, 1.0))
+            .unwrap();
         assert!((s - 5.0).abs() < 1e-12 && (a - 1.5).abs() < 1e-12 && (b - 1.0).abs() < 1e-12);
-        assert!(q.hit(&Vector3::zeros(), &Vector3::new(1.0, 0.0, 1.0)).is_none());
-        assert!(q.hit(&Vector3::zeros(), &Vector3::new(0.0, 0.0, -1.0)).is_none());
+        assert!(
+            q.hit(&Vector3::zeros(), &Vector3::new(1.0, 0.0, 1.0))
+                .is_none()
+        );
+        assert!(
+            q.hit(&Vector3::zeros(), &Vector3::new(0.0, 0.0, -1.0))
+                .is_none()
+        );
         assert!((q.distance(&Vector3::new(0.0, 0.0, 3.0)) - 2.0).abs() < 1e-12);
         assert!((q.distance(&Vector3::new(3.0, 0.0, 5.0)) - 2.0).abs() < 1e-12);
     }
@@ -363,7 +366,9 @@ mod tests {
         let v: Vec<f64> = (0..400)
             .map(|i| texture(f64::from(i) * 0.013, f64::from(i % 17) * 0.07, 5))
             .collect();
-        let (lo, hi) = v.iter().fold((1.0f64, 0.0f64), |(l, h), x| (l.min(*x), h.max(*x)));
+        let (lo, hi) = v
+            .iter()
+            .fold((1.0f64, 0.0f64), |(l, h), x| (l.min(*x), h.max(*x)));
         assert!(lo < 0.25 && hi > 0.75, "{lo} {hi}");
         assert!(v.iter().all(|x| (0.0..=1.0).contains(x)));
         assert_eq!(texture(0.3, 0.7, 5), texture(0.3, 0.7, 5));
@@ -372,10 +377,14 @@ mod tests {
     #[test]
     fn boxes_are_closed_and_cameras_see_the_scene() {
         let scene = two_view_scene();
-        let (c1, c2) = two_view_cameras();
+        let (_, c2) = two_view_cameras();
         assert!((c2.center() - Vector3::new(1.0, -0.1, 0.2)).norm() < 1e-12);
         // The centre ray of camera 1 hits the first box's front face at z = 4.3.
-        let hit = cast(&scene, &Vector3::zeros(), &Vector3::new(-0.9 / 4.3, 0.9 / 4.3, 1.0));
+        let hit = cast(
+            &scene,
+            &Vector3::zeros(),
+            &Vector3::new(-0.9 / 4.3, 0.9 / 4.3, 1.0),
+        );
         let (s, i, _, _) = hit.unwrap();
         assert_eq!(i, 4);
         assert!((s - 4.3).abs() < 1e-9);
