@@ -29,7 +29,8 @@ use ocellus_engine::value::{Channels, Distortion, Image, Intrinsics, Metrics, Po
 use ocellus_engine::{param_enum, params};
 use rayon::prelude::*;
 
-use super::camera::{Lens, angle_axis, nearest_rotation, pose_from, rodrigues, to_na};
+use super::camera::{Lens, to_na};
+use super::pose_util::{angle_axis, nearest_rotation, pose_from_rt, rodrigues};
 
 param_enum! {
     /// Which distortion coefficients `geometry.calibrate` estimates (the others stay 0).
@@ -316,7 +317,7 @@ pub fn zhang_extrinsics(k: &Intrinsics, h: &Matrix3<f64>) -> Option<(Matrix3<f64
     let r3 = r1.cross(&r2);
     let t = a.column(2) * lambda;
     let r = Matrix3::from_columns(&[r1, r2, r3]);
-    Some((nearest_rotation(&r), Vector3::new(t[0], t[1], t[2])))
+    Some((nearest_rotation(&r)?, Vector3::new(t[0], t[1], t[2])))
 }
 
 /// The parameter layout of [`lm_calibration`].
@@ -619,7 +620,7 @@ pub fn calibrate_planar(
     let poses = (0..views.len())
         .map(|v| {
             let (w, t) = layout.view(&p, v);
-            pose_from(&rodrigues(w), &Vector3::new(t[0], t[1], t[2]))
+            pose_from_rt(&rodrigues(w), &Vector3::new(t[0], t[1], t[2]))
         })
         .collect();
     if !(rms.is_finite() && k.fx > 0.0 && k.fy > 0.0) {
@@ -1074,7 +1075,8 @@ pub mod fixture {
             .map(|(w, o)| {
                 let r = rodrigues(*w);
                 let t = Vector3::from(*o) - r * centre;
-                pose_from(&r, &t)
+                // The engine's own conversion: the rendered fixtures depend on these bits.
+                Pose::from_rotation_matrix(&super::super::camera::from_na(&r), [t[0], t[1], t[2]])
             })
             .collect()
     }
@@ -1184,7 +1186,7 @@ mod tests {
         .map(|w| {
             let r = rodrigues(*w);
             let t = Vector3::new(0.0, 0.0, 8.0) - r * Vector3::new(2.0, 1.25, 0.0);
-            project_board(&lens, &pose_from(&r, &t), &object)
+            project_board(&lens, &pose_from_rt(&r, &t), &object)
         })
         .collect();
         for distortion in [
@@ -1235,7 +1237,7 @@ mod tests {
             .map(|&a| {
                 let r = rodrigues([0.0, 0.0, a]);
                 let t = Vector3::new(0.0, 0.0, 15.0) - r * Vector3::new(3.0, 2.0, 0.0);
-                project_board(&Lens::pinhole(lens.k), &pose_from(&r, &t), &object)
+                project_board(&Lens::pinhole(lens.k), &pose_from_rt(&r, &t), &object)
             })
             .collect();
         let err = calibrate_planar(&object, &flat, 320, 240, &opts).unwrap_err();
