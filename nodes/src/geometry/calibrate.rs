@@ -1109,6 +1109,17 @@ mod tests {
             .collect()
     }
 
+    /// The fixture camera, its board and the exact projections of the board in every view.
+    fn fixture_views() -> (Lens, Vec<[f64; 2]>, Vec<Vec<[f64; 2]>>) {
+        let lens = fixture::lens();
+        let object = board_points(fixture::COLS, fixture::ROWS, 1.0);
+        let views = fixture::poses()
+            .iter()
+            .map(|p| project_board(&lens, p, &object))
+            .collect();
+        (lens, object, views)
+    }
+
     fn fixture_dir() -> PathBuf {
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/data/calibration")
     }
@@ -1132,12 +1143,7 @@ mod tests {
 
     #[test]
     fn exact_projections_give_the_exact_camera() {
-        let lens = fixture::lens();
-        let object = board_points(fixture::COLS, fixture::ROWS, 1.0);
-        let views: Vec<Vec<[f64; 2]>> = fixture::poses()
-            .iter()
-            .map(|p| project_board(&lens, p, &object))
-            .collect();
+        let (_, object, views) = fixture_views();
         let cal = calibrate_planar(
             &object,
             &views,
@@ -1222,12 +1228,7 @@ mod tests {
 
     #[test]
     fn too_few_or_parallel_views_are_errors() {
-        let lens = fixture::lens();
-        let object = board_points(fixture::COLS, fixture::ROWS, 1.0);
-        let views: Vec<Vec<[f64; 2]>> = fixture::poses()
-            .iter()
-            .map(|p| project_board(&lens, p, &object))
-            .collect();
+        let (lens, object, views) = fixture_views();
         let opts = CalibrationOptions::default();
         let err = calibrate_planar(&object, &views[..2], 320, 240, &opts).unwrap_err();
         assert!(err.contains("at least 3"), "{err}");
