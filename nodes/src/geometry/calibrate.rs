@@ -15,8 +15,9 @@
 //! 4. radial distortion `k1, k2` by Zhang's linear least squares;
 //! 5. Levenberg–Marquardt ([`lm_calibration`]) over the intrinsics, the chosen distortion
 //!    terms and the per-view poses (angle-axis + translation), minimizing the reprojection
-//!    error. Dense normal equations with Marquardt's diagonal scaling; the Jacobian is by
-//!    central differences (per-view columns only touch that view's rows).
+//!    error, with the shared solver [`super::lm`] (dense normal equations, Marquardt's diagonal
+//!    scaling); the Jacobian is by central differences (per-view columns only touch that view's
+//!    rows).
 //!
 //! The RMS error is OpenCV's: `sqrt(Σ‖r‖² / N)` over the N points of all views.
 
@@ -30,6 +31,7 @@ use ocellus_engine::{param_enum, params};
 use rayon::prelude::*;
 
 use super::camera::{Lens, to_na};
+use super::lm::{self, LmOptions, Problem};
 use super::pose_util::{angle_axis, nearest_rotation, pose_from_rt, rodrigues};
 
 param_enum! {
@@ -433,100 +435,104 @@ fn step_for(x: f64) -> f64 {
     1e-6 * x.abs().max(1e-2)
 }
 
-/// Levenberg–Marquardt refinement of a planar calibration: intrinsics, the free distortion
-/// terms and the per-view poses, minimizing the summed squared reprojection error. Dense
-/// normal equations `(JᵀJ + λ·diag(JᵀJ))δ = −Jᵀr`, λ divided by 10 on success and multiplied
-/// by 10 on failure; stops when the cost drops by less than 1e-15 relative or the step is
+/// The calibration as a least-squares problem for [`lm::levenberg_marquardt`]: intrinsics, the
+/// free distortion terms and the per-view poses, residuals the reprojection errors.
+struct CalibrationProblem<'a> {
+    layout: Layout,
+    object: &'a [[f64; 2]],
+    views: &'a [Vec<[f64; 2]>],
+}
+
+impl Problem for CalibrationProblem<'_> {
+    fn num_params(&self) -> usize {
+        self.layout.len()
+    }
+
+    fn num_residuals(&self) -> usize {
+        2 * self.object.len() * self.views.len()
+    }
+
+    fn residuals(&self, p: &[f64], r: &mut [f64]) {
+        let (k, d) = self.layout.lens(p);
+        let n = self.object.len();
+        for (v, (obs, out)) in self.views.iter().zip(r.chunks_exact_mut(2 * n)).enumerate() {
+            let (w, t) = self.layout.view(p, v);
+            view_residuals(&k, &d, w, t, self.object, obs, out);
+        }
+    }
+
+    /// Central differences exploiting the block structure: a global parameter (intrinsics,
+    /// distortion) moves every residual, a pose parameter only its own view's. Columns are
+    /// filled in parallel, each by a fixed computation: deterministic.
+    fn jacobian(&self, p: &[f64], jacobian: &mut DMatrix<f64>) {
+        let l = &self.layout;
+        let (object, views) = (self.object, self.views);
+        let n = object.len();
+        let rows = 2 * n * views.len();
+        let g = l.global_count();
+        jacobian.fill(0.0);
+        // Column-major storage: one contiguous column per parameter.
+        jacobian
+            .as_mut_slice()
+            .par_chunks_mut(rows)
+            .enumerate()
+            .for_each(|(j, col)| {
+                let h = step_for(p[j]);
+                let mut pp = p.to_vec();
+                pp[j] = p[j] + h;
+                if j < g {
+                    let plus = all_residuals(l, &pp, object, views);
+                    pp[j] = p[j] - h;
+                    let minus = all_residuals(l, &pp, object, views);
+                    for ((c, a), b) in col.iter_mut().zip(&plus).zip(&minus) {
+                        *c = (a - b) / (2.0 * h);
+                    }
+                } else {
+                    let v = (j - g) / 6;
+                    let (k, d) = l.lens(p);
+                    let mut plus = vec![0.0; 2 * n];
+                    let mut minus = vec![0.0; 2 * n];
+                    let (w, t) = l.view(&pp, v);
+                    view_residuals(&k, &d, w, t, object, &views[v], &mut plus);
+                    pp[j] = p[j] - h;
+                    let (w, t) = l.view(&pp, v);
+                    view_residuals(&k, &d, w, t, object, &views[v], &mut minus);
+                    let at = 2 * n * v;
+                    for ((c, a), b) in col[at..at + 2 * n].iter_mut().zip(&plus).zip(&minus) {
+                        *c = (a - b) / (2.0 * h);
+                    }
+                }
+            });
+    }
+}
+
+/// Levenberg–Marquardt refinement of a planar calibration (the shared solver of [`lm`]):
+/// intrinsics, the free distortion terms and the per-view poses, minimizing the summed squared
+/// reprojection error; stops when the cost drops by less than 1e-15 relative or the step is
 /// below 1e-12 relative. Returns the parameters and the iterations run.
 fn lm_calibration(
     l: &Layout,
-    mut p: Vec<f64>,
+    p: Vec<f64>,
     object: &[[f64; 2]],
     views: &[Vec<[f64; 2]>],
     max_iterations: usize,
 ) -> (Vec<f64>, usize) {
-    let n = object.len();
-    let rows = 2 * n * views.len();
-    let cols = l.len();
-    let g = l.global_count();
-    let mut r = all_residuals(l, &p, object, views);
-    let mut cost: f64 = r.iter().map(|v| v * v).sum();
-    let mut lambda = 1e-3;
-    let mut iterations = 0;
-    for _ in 0..max_iterations {
-        iterations += 1;
-        // Jacobian, column by column (views in parallel, a fixed layout: deterministic).
-        let mut jt = vec![0.0; cols * rows]; // Jᵀ, row-major: one row per parameter
-        jt.par_chunks_mut(rows).enumerate().for_each(|(j, col)| {
-            let h = step_for(p[j]);
-            let mut pp = p.clone();
-            pp[j] = p[j] + h;
-            if j < g {
-                let plus = all_residuals(l, &pp, object, views);
-                pp[j] = p[j] - h;
-                let minus = all_residuals(l, &pp, object, views);
-                for ((c, a), b) in col.iter_mut().zip(&plus).zip(&minus) {
-                    *c = (a - b) / (2.0 * h);
-                }
-            } else {
-                let v = (j - g) / 6;
-                let (k, d) = l.lens(&p);
-                let mut plus = vec![0.0; 2 * n];
-                let mut minus = vec![0.0; 2 * n];
-                let (w, t) = l.view(&pp, v);
-                view_residuals(&k, &d, w, t, object, &views[v], &mut plus);
-                pp[j] = p[j] - h;
-                let (w, t) = l.view(&pp, v);
-                view_residuals(&k, &d, w, t, object, &views[v], &mut minus);
-                let at = 2 * n * v;
-                for ((c, a), b) in col[at..at + 2 * n].iter_mut().zip(&plus).zip(&minus) {
-                    *c = (a - b) / (2.0 * h);
-                }
-            }
-        });
-        let jtm = DMatrix::from_row_slice(cols, rows, &jt);
-        let a = &jtm * jtm.transpose();
-        let grad = &jtm * DVector::from_column_slice(&r);
-        let mut accepted = false;
-        let mut small_step = false;
-        while lambda < 1e16 {
-            let mut aa = a.clone();
-            for i in 0..cols {
-                aa[(i, i)] += lambda * a[(i, i)].max(1e-12);
-            }
-            let Some(chol) = aa.cholesky() else {
-                lambda *= 10.0;
-                continue;
-            };
-            let delta = chol.solve(&(-&grad));
-            let np: Vec<f64> = p.iter().zip(delta.iter()).map(|(a, b)| a + b).collect();
-            let nr = all_residuals(l, &np, object, views);
-            let ncost: f64 = nr.iter().map(|v| v * v).sum();
-            let pnorm = p.iter().map(|v| v * v).sum::<f64>().sqrt();
-            small_step = delta.norm() <= 1e-12 * (pnorm + 1e-12);
-            if ncost.is_finite() && ncost < cost {
-                let gain = cost - ncost;
-                p = np;
-                r = nr;
-                let old = cost;
-                cost = ncost;
-                lambda = (lambda / 10.0).max(1e-15);
-                accepted = true;
-                if gain <= 1e-15 * old {
-                    small_step = true;
-                }
-                break;
-            }
-            if small_step {
-                break;
-            }
-            lambda *= 10.0;
-        }
-        if !accepted || small_step {
-            break;
-        }
-    }
-    (p, iterations)
+    let problem = CalibrationProblem {
+        layout: *l,
+        object,
+        views,
+    };
+    let report = lm::levenberg_marquardt(
+        &problem,
+        &p,
+        &LmOptions {
+            max_iterations,
+            cost_tolerance: 1e-15,
+            step_tolerance: 1e-12,
+            ..LmOptions::default()
+        },
+    );
+    (report.x, report.iterations)
 }
 
 /// Zhang's planar calibration: `object` are board-plane points (z = 0) and `views` their
