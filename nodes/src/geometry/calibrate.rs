@@ -4,7 +4,7 @@
 //! [`calibrate_planar`] follows Z. Zhang, "A flexible new technique for camera calibration",
 //! IEEE TPAMI 22(11), 2000:
 //! 1. one homography per view (board plane → pixels) by the normalized DLT
-//!    ([`calib_homography_dlt`], Hartley's normalization, SVD null vector);
+//!    ([`calib_homography_dlt`]: the shared [`super::homography::dlt`], Hartley's normalization);
 //! 2. the closed-form intrinsics from `B = K⁻ᵀK⁻¹`: each homography gives `h1ᵀBh2 = 0` and
 //!    `h1ᵀBh1 = h2ᵀBh2`; with the zero-skew row `B12 = 0` (OpenCV's model has no skew) the
 //!    stacked system's null vector is `B` (the homographies are first scaled to the unit square
@@ -31,6 +31,7 @@ use ocellus_engine::{param_enum, params};
 use rayon::prelude::*;
 
 use super::camera::{Lens, to_na};
+use super::homography::{Correspondence, dlt};
 use super::lm::{self, LmOptions, Problem};
 use super::pose_util::{angle_axis, nearest_rotation, pose_from_rt, rodrigues};
 
@@ -124,58 +125,41 @@ pub fn board_points(cols: usize, rows: usize, square: f64) -> Vec<[f64; 2]> {
         .collect()
 }
 
-/// Similarity `T` (row-major) moving points to centroid 0 and mean distance √2.
-fn normalizer(pts: &[[f64; 2]]) -> Option<[f64; 9]> {
+/// Whether `pts` span the plane: the smaller eigenvalue of their 2×2 scatter matrix is above
+/// 1e-12 of the larger (false for collinear, repeated or non-finite points).
+fn spans_plane(pts: &[[f64; 2]]) -> bool {
     let n = pts.len() as f64;
     let (mx, my) = pts
         .iter()
         .fold((0.0, 0.0), |(a, b), p| (a + p[0] / n, b + p[1] / n));
-    let d = pts
-        .iter()
-        .map(|p| (p[0] - mx).hypot(p[1] - my))
-        .sum::<f64>()
-        / n;
-    if !(d > 0.0 && d.is_finite()) {
-        return None;
+    let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
+    for p in pts {
+        let (dx, dy) = (p[0] - mx, p[1] - my);
+        sxx += dx * dx;
+        sxy += dx * dy;
+        syy += dy * dy;
     }
-    let s = std::f64::consts::SQRT_2 / d;
-    Some([s, 0.0, -s * mx, 0.0, s, -s * my, 0.0, 0.0, 1.0])
+    let half_trace = 0.5 * (sxx + syy);
+    let root = (0.25 * (sxx - syy).powi(2) + sxy * sxy).sqrt();
+    let (small, large) = (half_trace - root, half_trace + root);
+    large.is_finite() && large > 0.0 && small > 1e-12 * large
 }
 
-/// Homography `H` (row-major, `H[8] = 1` where possible) with `dst ~ H·src`, by the normalized
-/// DLT (Hartley & Zisserman, Alg. 4.2). Needs ≥ 4 points; `None` for degenerate input.
-/// (Private to calibration; the robust-estimation family has its own estimator.)
+/// Homography `H` (`H[2][2] = 1` where possible) with `dst ~ H·src`: the shared normalized DLT
+/// ([`super::homography::dlt`], Hartley & Zisserman Alg. 4.2). Needs ≥ 4 points; `None` when
+/// either point set is collinear or degenerate.
 pub fn calib_homography_dlt(src: &[[f64; 2]], dst: &[[f64; 2]]) -> Option<Matrix3<f64>> {
-    if src.len() != dst.len() || src.len() < 4 {
+    if src.len() != dst.len() || src.len() < 4 || !spans_plane(src) || !spans_plane(dst) {
         return None;
     }
-    let ts = normalizer(src)?;
-    let td = normalizer(dst)?;
-    let n = src.len();
-    let mut a = DMatrix::<f64>::zeros(2 * n, 9);
-    for (i, (s, d)) in src.iter().zip(dst).enumerate() {
-        let (x, y) = (ts[0] * s[0] + ts[2], ts[4] * s[1] + ts[5]);
-        let (u, v) = (td[0] * d[0] + td[2], td[4] * d[1] + td[5]);
-        let r0 = [x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y, -u];
-        let r1 = [0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y, -v];
-        for j in 0..9 {
-            a[(2 * i, j)] = r0[j];
-            a[(2 * i + 1, j)] = r1[j];
-        }
-    }
-    let (h, gap) = null_space_with_gap(&a)?;
-    if gap < 1e-10 {
-        return None; // collinear or repeated points: no unique homography
-    }
-    let hn = Matrix3::from_row_slice(h.as_slice());
-    let td_inv = to_na(&td).try_inverse()?;
-    let mut hm = td_inv * hn * to_na(&ts);
+    let pairs: Vec<Correspondence> = src.iter().zip(dst).map(|(s, d)| [*s, *d]).collect();
+    let hm = dlt(&pairs)?;
     let scale = if hm[(2, 2)].abs() > 1e-12 {
         hm[(2, 2)]
     } else {
         hm.norm()
     };
-    hm /= scale;
+    let hm = hm / scale;
     hm.iter().all(|v| v.is_finite()).then_some(hm)
 }
 
