@@ -1099,8 +1099,11 @@ mod tests {
             .collect()
     }
 
+    /// The fixture camera, its board, and the board's exact projection in every view.
+    type FixtureViews = (Lens, Vec<[f64; 2]>, Vec<Vec<[f64; 2]>>);
+
     /// The fixture camera, its board and the exact projections of the board in every view.
-    fn fixture_views() -> (Lens, Vec<[f64; 2]>, Vec<Vec<[f64; 2]>>) {
+    fn fixture_views() -> FixtureViews {
         let lens = fixture::lens();
         let object = board_points(fixture::COLS, fixture::ROWS, 1.0);
         let views = fixture::poses()
