@@ -164,7 +164,8 @@ pub fn triangulate_dlt(views: &[View], pixels: &[[f64; 2]]) -> Option<Vector4<f6
 /// Right singular vector of the smallest singular value of the 4×4 matrix with rows `rows`
 /// (unused rows zero), by Hestenes' one-sided Jacobi SVD: plane rotations `V` orthogonalize the
 /// columns of `A·V`; then the column norms are the singular values and the columns of `V` the
-/// right singular vectors. Sweeps in a fixed order until no pair is rotated (at most 30).
+/// right singular vectors. Sweeps in a fixed order until no pair is rotated (at most 30;
+/// typically 3–4).
 fn null_vector4(rows: &[Vector4<f64>; 4]) -> Option<Vector4<f64>> {
     // Columns of A (cols[j][i] = A[i][j]) and of V.
     let mut cols = [[0.0f64; 4]; 4];
@@ -178,11 +179,13 @@ fn null_vector4(rows: &[Vector4<f64>; 4]) -> Option<Vector4<f64>> {
         vj[j] = 1.0;
     }
     let dot = |a: &[f64; 4], b: &[f64; 4]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3];
+    // Rotates rows p < q of `m` in their plane.
     let rotate = |m: &mut [[f64; 4]; 4], p: usize, q: usize, cs: f64, sn: f64| {
-        for k in 0..4 {
-            let (a, b) = (m[p][k], m[q][k]);
-            m[p][k] = cs * a - sn * b;
-            m[q][k] = sn * a + cs * b;
+        let (head, tail) = m.split_at_mut(q);
+        for (a, b) in head[p].iter_mut().zip(tail[0].iter_mut()) {
+            let (x, y) = (*a, *b);
+            *a = cs * x - sn * y;
+            *b = sn * x + cs * y;
         }
     };
     for _ in 0..30 {
@@ -192,12 +195,23 @@ fn null_vector4(rows: &[Vector4<f64>; 4]) -> Option<Vector4<f64>> {
                 let alpha = dot(&cols[p], &cols[p]);
                 let beta = dot(&cols[q], &cols[q]);
                 let gamma = dot(&cols[p], &cols[q]);
-                if gamma == 0.0 || gamma.abs() <= f64::EPSILON * (alpha * beta).sqrt() {
+                // Columns already orthogonal to working precision (squared test, no root).
+                if gamma * gamma <= f64::EPSILON * f64::EPSILON * alpha * beta {
                     continue;
                 }
                 let zeta = (beta - alpha) / (2.0 * gamma);
-                let t = zeta.signum() / (zeta.abs() + zeta.hypot(1.0));
-                let cs = 1.0 / t.hypot(1.0);
+                // tan of the rotation angle, the smaller root; 1/(2ζ) where ζ² would overflow.
+                let t = if zeta.abs() < 1e150 {
+                    zeta.signum() / (zeta.abs() + (1.0 + zeta * zeta).sqrt())
+                } else {
+                    0.5 / zeta
+                };
+                // A rotation by less than the rounding unit changes nothing (it also stops the
+                // sweeps when a column is numerically zero and its product is pure rounding).
+                if t.abs() <= f64::EPSILON {
+                    continue;
+                }
+                let cs = 1.0 / (1.0 + t * t).sqrt();
                 let sn = cs * t;
                 rotate(&mut cols, p, q, cs, sn);
                 rotate(&mut v, p, q, cs, sn);
