@@ -4,7 +4,7 @@
 //! [`calibrate_planar`] follows Z. Zhang, "A flexible new technique for camera calibration",
 //! IEEE TPAMI 22(11), 2000:
 //! 1. one homography per view (board plane → pixels) by the normalized DLT
-//!    ([`calib_homography_dlt`], Hartley's normalization, SVD null vector);
+//!    ([`calib_homography_dlt`]: the shared [`super::homography::dlt`], Hartley's normalization);
 //! 2. the closed-form intrinsics from `B = K⁻ᵀK⁻¹`: each homography gives `h1ᵀBh2 = 0` and
 //!    `h1ᵀBh1 = h2ᵀBh2`; with the zero-skew row `B12 = 0` (OpenCV's model has no skew) the
 //!    stacked system's null vector is `B` (the homographies are first scaled to the unit square
@@ -15,8 +15,9 @@
 //! 4. radial distortion `k1, k2` by Zhang's linear least squares;
 //! 5. Levenberg–Marquardt ([`lm_calibration`]) over the intrinsics, the chosen distortion
 //!    terms and the per-view poses (angle-axis + translation), minimizing the reprojection
-//!    error. Dense normal equations with Marquardt's diagonal scaling; the Jacobian is by
-//!    central differences (per-view columns only touch that view's rows).
+//!    error, with the shared solver [`super::lm`] (dense normal equations, Marquardt's diagonal
+//!    scaling); the Jacobian is by central differences (per-view columns only touch that view's
+//!    rows).
 //!
 //! The RMS error is OpenCV's: `sqrt(Σ‖r‖² / N)` over the N points of all views.
 
@@ -29,7 +30,10 @@ use ocellus_engine::value::{Channels, Distortion, Image, Intrinsics, Metrics, Po
 use ocellus_engine::{param_enum, params};
 use rayon::prelude::*;
 
-use super::camera::{Lens, angle_axis, nearest_rotation, pose_from, rodrigues, to_na};
+use super::camera::{Lens, to_na};
+use super::homography::{Correspondence, dlt};
+use super::lm::{self, LmOptions, Problem};
+use super::pose_util::{angle_axis, nearest_rotation, pose_from_rt, rodrigues};
 
 param_enum! {
     /// Which distortion coefficients `geometry.calibrate` estimates (the others stay 0).
@@ -121,58 +125,41 @@ pub fn board_points(cols: usize, rows: usize, square: f64) -> Vec<[f64; 2]> {
         .collect()
 }
 
-/// Similarity `T` (row-major) moving points to centroid 0 and mean distance √2.
-fn normalizer(pts: &[[f64; 2]]) -> Option<[f64; 9]> {
+/// Whether `pts` span the plane: the smaller eigenvalue of their 2×2 scatter matrix is above
+/// 1e-12 of the larger (false for collinear, repeated or non-finite points).
+fn spans_plane(pts: &[[f64; 2]]) -> bool {
     let n = pts.len() as f64;
     let (mx, my) = pts
         .iter()
         .fold((0.0, 0.0), |(a, b), p| (a + p[0] / n, b + p[1] / n));
-    let d = pts
-        .iter()
-        .map(|p| (p[0] - mx).hypot(p[1] - my))
-        .sum::<f64>()
-        / n;
-    if !(d > 0.0 && d.is_finite()) {
-        return None;
+    let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
+    for p in pts {
+        let (dx, dy) = (p[0] - mx, p[1] - my);
+        sxx += dx * dx;
+        sxy += dx * dy;
+        syy += dy * dy;
     }
-    let s = std::f64::consts::SQRT_2 / d;
-    Some([s, 0.0, -s * mx, 0.0, s, -s * my, 0.0, 0.0, 1.0])
+    let half_trace = 0.5 * (sxx + syy);
+    let root = (0.25 * (sxx - syy).powi(2) + sxy * sxy).sqrt();
+    let (small, large) = (half_trace - root, half_trace + root);
+    large.is_finite() && large > 0.0 && small > 1e-12 * large
 }
 
-/// Homography `H` (row-major, `H[8] = 1` where possible) with `dst ~ H·src`, by the normalized
-/// DLT (Hartley & Zisserman, Alg. 4.2). Needs ≥ 4 points; `None` for degenerate input.
-/// (Private to calibration; the robust-estimation family has its own estimator.)
+/// Homography `H` (`H[2][2] = 1` where possible) with `dst ~ H·src`: the shared normalized DLT
+/// ([`super::homography::dlt`], Hartley & Zisserman Alg. 4.2). Needs ≥ 4 points; `None` when
+/// either point set is collinear or degenerate.
 pub fn calib_homography_dlt(src: &[[f64; 2]], dst: &[[f64; 2]]) -> Option<Matrix3<f64>> {
-    if src.len() != dst.len() || src.len() < 4 {
+    if src.len() != dst.len() || src.len() < 4 || !spans_plane(src) || !spans_plane(dst) {
         return None;
     }
-    let ts = normalizer(src)?;
-    let td = normalizer(dst)?;
-    let n = src.len();
-    let mut a = DMatrix::<f64>::zeros(2 * n, 9);
-    for (i, (s, d)) in src.iter().zip(dst).enumerate() {
-        let (x, y) = (ts[0] * s[0] + ts[2], ts[4] * s[1] + ts[5]);
-        let (u, v) = (td[0] * d[0] + td[2], td[4] * d[1] + td[5]);
-        let r0 = [x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y, -u];
-        let r1 = [0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y, -v];
-        for j in 0..9 {
-            a[(2 * i, j)] = r0[j];
-            a[(2 * i + 1, j)] = r1[j];
-        }
-    }
-    let (h, gap) = null_space_with_gap(&a)?;
-    if gap < 1e-10 {
-        return None; // collinear or repeated points: no unique homography
-    }
-    let hn = Matrix3::from_row_slice(h.as_slice());
-    let td_inv = to_na(&td).try_inverse()?;
-    let mut hm = td_inv * hn * to_na(&ts);
+    let pairs: Vec<Correspondence> = src.iter().zip(dst).map(|(s, d)| [*s, *d]).collect();
+    let hm = dlt(&pairs)?;
     let scale = if hm[(2, 2)].abs() > 1e-12 {
         hm[(2, 2)]
     } else {
         hm.norm()
     };
-    hm /= scale;
+    let hm = hm / scale;
     hm.iter().all(|v| v.is_finite()).then_some(hm)
 }
 
@@ -316,7 +303,7 @@ pub fn zhang_extrinsics(k: &Intrinsics, h: &Matrix3<f64>) -> Option<(Matrix3<f64
     let r3 = r1.cross(&r2);
     let t = a.column(2) * lambda;
     let r = Matrix3::from_columns(&[r1, r2, r3]);
-    Some((nearest_rotation(&r), Vector3::new(t[0], t[1], t[2])))
+    Some((nearest_rotation(&r)?, Vector3::new(t[0], t[1], t[2])))
 }
 
 /// The parameter layout of [`lm_calibration`].
@@ -432,100 +419,104 @@ fn step_for(x: f64) -> f64 {
     1e-6 * x.abs().max(1e-2)
 }
 
-/// Levenberg–Marquardt refinement of a planar calibration: intrinsics, the free distortion
-/// terms and the per-view poses, minimizing the summed squared reprojection error. Dense
-/// normal equations `(JᵀJ + λ·diag(JᵀJ))δ = −Jᵀr`, λ divided by 10 on success and multiplied
-/// by 10 on failure; stops when the cost drops by less than 1e-15 relative or the step is
+/// The calibration as a least-squares problem for [`lm::levenberg_marquardt`]: intrinsics, the
+/// free distortion terms and the per-view poses, residuals the reprojection errors.
+struct CalibrationProblem<'a> {
+    layout: Layout,
+    object: &'a [[f64; 2]],
+    views: &'a [Vec<[f64; 2]>],
+}
+
+impl Problem for CalibrationProblem<'_> {
+    fn num_params(&self) -> usize {
+        self.layout.len()
+    }
+
+    fn num_residuals(&self) -> usize {
+        2 * self.object.len() * self.views.len()
+    }
+
+    fn residuals(&self, p: &[f64], r: &mut [f64]) {
+        let (k, d) = self.layout.lens(p);
+        let n = self.object.len();
+        for (v, (obs, out)) in self.views.iter().zip(r.chunks_exact_mut(2 * n)).enumerate() {
+            let (w, t) = self.layout.view(p, v);
+            view_residuals(&k, &d, w, t, self.object, obs, out);
+        }
+    }
+
+    /// Central differences exploiting the block structure: a global parameter (intrinsics,
+    /// distortion) moves every residual, a pose parameter only its own view's. Columns are
+    /// filled in parallel, each by a fixed computation: deterministic.
+    fn jacobian(&self, p: &[f64], jacobian: &mut DMatrix<f64>) {
+        let l = &self.layout;
+        let (object, views) = (self.object, self.views);
+        let n = object.len();
+        let rows = 2 * n * views.len();
+        let g = l.global_count();
+        jacobian.fill(0.0);
+        // Column-major storage: one contiguous column per parameter.
+        jacobian
+            .as_mut_slice()
+            .par_chunks_mut(rows)
+            .enumerate()
+            .for_each(|(j, col)| {
+                let h = step_for(p[j]);
+                let mut pp = p.to_vec();
+                pp[j] = p[j] + h;
+                if j < g {
+                    let plus = all_residuals(l, &pp, object, views);
+                    pp[j] = p[j] - h;
+                    let minus = all_residuals(l, &pp, object, views);
+                    for ((c, a), b) in col.iter_mut().zip(&plus).zip(&minus) {
+                        *c = (a - b) / (2.0 * h);
+                    }
+                } else {
+                    let v = (j - g) / 6;
+                    let (k, d) = l.lens(p);
+                    let mut plus = vec![0.0; 2 * n];
+                    let mut minus = vec![0.0; 2 * n];
+                    let (w, t) = l.view(&pp, v);
+                    view_residuals(&k, &d, w, t, object, &views[v], &mut plus);
+                    pp[j] = p[j] - h;
+                    let (w, t) = l.view(&pp, v);
+                    view_residuals(&k, &d, w, t, object, &views[v], &mut minus);
+                    let at = 2 * n * v;
+                    for ((c, a), b) in col[at..at + 2 * n].iter_mut().zip(&plus).zip(&minus) {
+                        *c = (a - b) / (2.0 * h);
+                    }
+                }
+            });
+    }
+}
+
+/// Levenberg–Marquardt refinement of a planar calibration (the shared solver of [`lm`]):
+/// intrinsics, the free distortion terms and the per-view poses, minimizing the summed squared
+/// reprojection error; stops when the cost drops by less than 1e-15 relative or the step is
 /// below 1e-12 relative. Returns the parameters and the iterations run.
 fn lm_calibration(
     l: &Layout,
-    mut p: Vec<f64>,
+    p: Vec<f64>,
     object: &[[f64; 2]],
     views: &[Vec<[f64; 2]>],
     max_iterations: usize,
 ) -> (Vec<f64>, usize) {
-    let n = object.len();
-    let rows = 2 * n * views.len();
-    let cols = l.len();
-    let g = l.global_count();
-    let mut r = all_residuals(l, &p, object, views);
-    let mut cost: f64 = r.iter().map(|v| v * v).sum();
-    let mut lambda = 1e-3;
-    let mut iterations = 0;
-    for _ in 0..max_iterations {
-        iterations += 1;
-        // Jacobian, column by column (views in parallel, a fixed layout: deterministic).
-        let mut jt = vec![0.0; cols * rows]; // Jᵀ, row-major: one row per parameter
-        jt.par_chunks_mut(rows).enumerate().for_each(|(j, col)| {
-            let h = step_for(p[j]);
-            let mut pp = p.clone();
-            pp[j] = p[j] + h;
-            if j < g {
-                let plus = all_residuals(l, &pp, object, views);
-                pp[j] = p[j] - h;
-                let minus = all_residuals(l, &pp, object, views);
-                for ((c, a), b) in col.iter_mut().zip(&plus).zip(&minus) {
-                    *c = (a - b) / (2.0 * h);
-                }
-            } else {
-                let v = (j - g) / 6;
-                let (k, d) = l.lens(&p);
-                let mut plus = vec![0.0; 2 * n];
-                let mut minus = vec![0.0; 2 * n];
-                let (w, t) = l.view(&pp, v);
-                view_residuals(&k, &d, w, t, object, &views[v], &mut plus);
-                pp[j] = p[j] - h;
-                let (w, t) = l.view(&pp, v);
-                view_residuals(&k, &d, w, t, object, &views[v], &mut minus);
-                let at = 2 * n * v;
-                for ((c, a), b) in col[at..at + 2 * n].iter_mut().zip(&plus).zip(&minus) {
-                    *c = (a - b) / (2.0 * h);
-                }
-            }
-        });
-        let jtm = DMatrix::from_row_slice(cols, rows, &jt);
-        let a = &jtm * jtm.transpose();
-        let grad = &jtm * DVector::from_column_slice(&r);
-        let mut accepted = false;
-        let mut small_step = false;
-        while lambda < 1e16 {
-            let mut aa = a.clone();
-            for i in 0..cols {
-                aa[(i, i)] += lambda * a[(i, i)].max(1e-12);
-            }
-            let Some(chol) = aa.cholesky() else {
-                lambda *= 10.0;
-                continue;
-            };
-            let delta = chol.solve(&(-&grad));
-            let np: Vec<f64> = p.iter().zip(delta.iter()).map(|(a, b)| a + b).collect();
-            let nr = all_residuals(l, &np, object, views);
-            let ncost: f64 = nr.iter().map(|v| v * v).sum();
-            let pnorm = p.iter().map(|v| v * v).sum::<f64>().sqrt();
-            small_step = delta.norm() <= 1e-12 * (pnorm + 1e-12);
-            if ncost.is_finite() && ncost < cost {
-                let gain = cost - ncost;
-                p = np;
-                r = nr;
-                let old = cost;
-                cost = ncost;
-                lambda = (lambda / 10.0).max(1e-15);
-                accepted = true;
-                if gain <= 1e-15 * old {
-                    small_step = true;
-                }
-                break;
-            }
-            if small_step {
-                break;
-            }
-            lambda *= 10.0;
-        }
-        if !accepted || small_step {
-            break;
-        }
-    }
-    (p, iterations)
+    let problem = CalibrationProblem {
+        layout: *l,
+        object,
+        views,
+    };
+    let report = lm::levenberg_marquardt(
+        &problem,
+        &p,
+        &LmOptions {
+            max_iterations,
+            cost_tolerance: 1e-15,
+            step_tolerance: 1e-12,
+            ..LmOptions::default()
+        },
+    );
+    (report.x, report.iterations)
 }
 
 /// Zhang's planar calibration: `object` are board-plane points (z = 0) and `views` their
@@ -619,7 +610,7 @@ pub fn calibrate_planar(
     let poses = (0..views.len())
         .map(|v| {
             let (w, t) = layout.view(&p, v);
-            pose_from(&rodrigues(w), &Vector3::new(t[0], t[1], t[2]))
+            pose_from_rt(&rodrigues(w), &Vector3::new(t[0], t[1], t[2]))
         })
         .collect();
     if !(rms.is_finite() && k.fx > 0.0 && k.fy > 0.0) {
@@ -1074,7 +1065,8 @@ pub mod fixture {
             .map(|(w, o)| {
                 let r = rodrigues(*w);
                 let t = Vector3::from(*o) - r * centre;
-                pose_from(&r, &t)
+                // The engine's own conversion: the rendered fixtures depend on these bits.
+                Pose::from_rotation_matrix(&super::super::camera::from_na(&r), [t[0], t[1], t[2]])
             })
             .collect()
     }
@@ -1107,6 +1099,20 @@ mod tests {
             .collect()
     }
 
+    /// The fixture camera, its board, and the board's exact projection in every view.
+    type FixtureViews = (Lens, Vec<[f64; 2]>, Vec<Vec<[f64; 2]>>);
+
+    /// The fixture camera, its board and the exact projections of the board in every view.
+    fn fixture_views() -> FixtureViews {
+        let lens = fixture::lens();
+        let object = board_points(fixture::COLS, fixture::ROWS, 1.0);
+        let views = fixture::poses()
+            .iter()
+            .map(|p| project_board(&lens, p, &object))
+            .collect();
+        (lens, object, views)
+    }
+
     fn fixture_dir() -> PathBuf {
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../graphs/data/calibration")
     }
@@ -1130,12 +1136,7 @@ mod tests {
 
     #[test]
     fn exact_projections_give_the_exact_camera() {
-        let lens = fixture::lens();
-        let object = board_points(fixture::COLS, fixture::ROWS, 1.0);
-        let views: Vec<Vec<[f64; 2]>> = fixture::poses()
-            .iter()
-            .map(|p| project_board(&lens, p, &object))
-            .collect();
+        let (_, object, views) = fixture_views();
         let cal = calibrate_planar(
             &object,
             &views,
@@ -1184,7 +1185,7 @@ mod tests {
         .map(|w| {
             let r = rodrigues(*w);
             let t = Vector3::new(0.0, 0.0, 8.0) - r * Vector3::new(2.0, 1.25, 0.0);
-            project_board(&lens, &pose_from(&r, &t), &object)
+            project_board(&lens, &pose_from_rt(&r, &t), &object)
         })
         .collect();
         for distortion in [
@@ -1220,12 +1221,7 @@ mod tests {
 
     #[test]
     fn too_few_or_parallel_views_are_errors() {
-        let lens = fixture::lens();
-        let object = board_points(fixture::COLS, fixture::ROWS, 1.0);
-        let views: Vec<Vec<[f64; 2]>> = fixture::poses()
-            .iter()
-            .map(|p| project_board(&lens, p, &object))
-            .collect();
+        let (lens, object, views) = fixture_views();
         let opts = CalibrationOptions::default();
         let err = calibrate_planar(&object, &views[..2], 320, 240, &opts).unwrap_err();
         assert!(err.contains("at least 3"), "{err}");
@@ -1235,7 +1231,7 @@ mod tests {
             .map(|&a| {
                 let r = rodrigues([0.0, 0.0, a]);
                 let t = Vector3::new(0.0, 0.0, 15.0) - r * Vector3::new(3.0, 2.0, 0.0);
-                project_board(&Lens::pinhole(lens.k), &pose_from(&r, &t), &object)
+                project_board(&Lens::pinhole(lens.k), &pose_from_rt(&r, &t), &object)
             })
             .collect();
         let err = calibrate_planar(&object, &flat, 320, 240, &opts).unwrap_err();

@@ -1,5 +1,6 @@
 //! Camera models: pinhole intrinsics with skew and OpenCV's two lens models, projection,
-//! unprojection, point undistortion, and angle-axis rotations.
+//! unprojection and point undistortion (the angle-axis helpers are re-exported from
+//! [`super::pose_util`]).
 //!
 //! A [`Lens`] is the pinhole matrix `K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]` plus a
 //! [`Distortion`]:
@@ -21,8 +22,8 @@
 //! the point; fisheye: `dθd/dθ ≤ 0`): the "valid field". OpenCV's `undistortPoints` runs a fixed 5-step fixed-point iteration by
 //! default and returns whatever it reached.
 
-use nalgebra::{Matrix3, Vector3};
-use ocellus_engine::value::{Camera, Distortion, Intrinsics, Pose};
+use nalgebra::Matrix3;
+use ocellus_engine::value::{Camera, Distortion, Intrinsics};
 
 /// Newton iterations allowed when undistorting.
 const MAX_NEWTON: usize = 60;
@@ -350,56 +351,8 @@ pub fn from_na(m: &Matrix3<f64>) -> [f64; 9] {
     ]
 }
 
-/// Rotation matrix of an angle-axis vector (Rodrigues' formula); Taylor series below 1e-4 rad,
-/// so tiny and zero angles are exact to rounding.
-pub fn rodrigues(w: [f64; 3]) -> Matrix3<f64> {
-    let t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
-    let theta = t2.sqrt();
-    let (a, b) = if theta < 1e-4 {
-        (1.0 - t2 / 6.0, 0.5 - t2 / 24.0)
-    } else {
-        (theta.sin() / theta, (1.0 - theta.cos()) / t2)
-    };
-    let k = Matrix3::new(0.0, -w[2], w[1], w[2], 0.0, -w[0], -w[1], w[0], 0.0);
-    Matrix3::identity() + k * a + k * k * b
-}
-
-/// Angle-axis vector of a rotation matrix (inverse of [`rodrigues`], angle in [0, π]); goes
-/// through the quaternion, so it is stable near 0 and near π.
-pub fn angle_axis(r: &Matrix3<f64>) -> [f64; 3] {
-    let q = Pose::from_rotation_matrix(&from_na(r), [0.0; 3]).rotation;
-    let v = Vector3::new(q[1], q[2], q[3]);
-    let s = v.norm();
-    if s < 1e-300 {
-        return [0.0; 3];
-    }
-    // angle = 2·atan2(|v|, w); w ≥ 0 here.
-    let angle = 2.0 * s.atan2(q[0]);
-    let f = if s < 1e-8 { 2.0 / q[0] } else { angle / s };
-    [v[0] * f, v[1] * f, v[2] * f]
-}
-
-/// The nearest rotation (Frobenius) to a 3×3 matrix, det +1.
-pub fn nearest_rotation(m: &Matrix3<f64>) -> Matrix3<f64> {
-    let svd = m.svd(true, true);
-    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
-        return Matrix3::identity();
-    };
-    let mut r = u * vt;
-    if r.determinant() < 0.0 {
-        let mut u2 = u;
-        for i in 0..3 {
-            u2[(i, 2)] = -u2[(i, 2)];
-        }
-        r = u2 * vt;
-    }
-    r
-}
-
-/// A pose from a rotation and translation.
-pub fn pose_from(r: &Matrix3<f64>, t: &Vector3<f64>) -> Pose {
-    Pose::from_rotation_matrix(&from_na(r), [t[0], t[1], t[2]])
-}
+// Rotation helpers live in `pose_util`; re-exported here for the lens and calibration code.
+pub use super::pose_util::{angle_axis, rodrigues};
 
 #[cfg(test)]
 mod tests {
@@ -481,28 +434,6 @@ mod tests {
                 );
             }
         }
-    }
-
-    #[test]
-    fn rodrigues_round_trip_and_small_angles() {
-        for w in [
-            [0.0, 0.0, 0.0],
-            [1e-12, -2e-12, 3e-12],
-            [1e-5, 2e-5, -1e-5],
-            [0.3, -0.2, 0.1],
-            [0.0, 0.0, std::f64::consts::PI - 1e-9],
-            [2.0, 1.0, -0.5],
-        ] {
-            let r = rodrigues(w);
-            assert!((r.determinant() - 1.0).abs() < 1e-12);
-            assert!((r * r.transpose() - Matrix3::identity()).norm() < 1e-12);
-            let back = angle_axis(&r);
-            let r2 = rodrigues(back);
-            assert!((r - r2).norm() < 1e-9, "{w:?}");
-        }
-        let w = [1e-9, 0.0, 0.0];
-        let back = angle_axis(&rodrigues(w));
-        assert!((back[0] - 1e-9).abs() < 1e-20);
     }
 
     #[test]

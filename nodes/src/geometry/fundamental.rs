@@ -40,9 +40,11 @@ pub fn normalize_fundamental(f: &Matrix3<f64>) -> Option<Matrix3<f64>> {
     Some(f * (largest.signum() / norm))
 }
 
-/// Squared Sampson distance of one correspondence under `f` (pixels²).
+/// The epipolar residual `e = x₂ᵀ F x₁` and the squared norm of its gradient with respect to
+/// the four coordinates (`(Fx₁)₁² + (Fx₁)₂² + (Fᵀx₂)₁² + (Fᵀx₂)₂²`): Sampson's distance is
+/// `e / √den`.
 #[inline]
-pub fn sampson_error2(f: &Matrix3<f64>, c: &Correspondence) -> f64 {
+fn sampson_terms(f: &Matrix3<f64>, c: &Correspondence) -> (f64, f64) {
     let [x1, y1] = c[0];
     let [x2, y2] = c[1];
     let fx0 = f[(0, 0)] * x1 + f[(0, 1)] * y1 + f[(0, 2)];
@@ -51,7 +53,13 @@ pub fn sampson_error2(f: &Matrix3<f64>, c: &Correspondence) -> f64 {
     let ftx0 = f[(0, 0)] * x2 + f[(1, 0)] * y2 + f[(2, 0)];
     let ftx1 = f[(0, 1)] * x2 + f[(1, 1)] * y2 + f[(2, 1)];
     let e = x2 * fx0 + y2 * fx1 + fx2;
-    let den = fx0 * fx0 + fx1 * fx1 + ftx0 * ftx0 + ftx1 * ftx1;
+    (e, fx0 * fx0 + fx1 * fx1 + ftx0 * ftx0 + ftx1 * ftx1)
+}
+
+/// Squared Sampson distance of one correspondence under `f` (pixels²).
+#[inline]
+pub fn sampson_error2(f: &Matrix3<f64>, c: &Correspondence) -> f64 {
+    let (e, den) = sampson_terms(f, c);
     if den > 0.0 {
         e * e / den
     } else if e == 0.0 {
@@ -281,15 +289,7 @@ impl Problem for FundamentalProblem<'_> {
     fn residuals(&self, x: &[f64], r: &mut [f64]) {
         let f = self.matrix(x);
         for (ri, c) in r.iter_mut().zip(self.data) {
-            let [x1, y1] = c[0];
-            let [x2, y2] = c[1];
-            let fx0 = f[(0, 0)] * x1 + f[(0, 1)] * y1 + f[(0, 2)];
-            let fx1 = f[(1, 0)] * x1 + f[(1, 1)] * y1 + f[(1, 2)];
-            let fx2 = f[(2, 0)] * x1 + f[(2, 1)] * y1 + f[(2, 2)];
-            let ftx0 = f[(0, 0)] * x2 + f[(1, 0)] * y2 + f[(2, 0)];
-            let ftx1 = f[(0, 1)] * x2 + f[(1, 1)] * y2 + f[(2, 1)];
-            let e = x2 * fx0 + y2 * fx1 + fx2;
-            let den = fx0 * fx0 + fx1 * fx1 + ftx0 * ftx0 + ftx1 * ftx1;
+            let (e, den) = sampson_terms(&f, c);
             *ri = e / den.sqrt();
         }
     }
@@ -529,12 +529,7 @@ pub(crate) mod tests {
             ..RobustOptions::default()
         };
         let report = estimate(&FundamentalEstimator, &data, &options).unwrap();
-        let found = report
-            .inlier_mask
-            .iter()
-            .zip(&truth)
-            .filter(|(m, t)| **m && **t)
-            .count();
+        let found = crate::geometry::ransac::tests::true_positives(&report.inlier_mask, &truth);
         assert!(
             found as f64 >= 0.9 * true_inliers as f64,
             "{found}/{true_inliers}"

@@ -483,12 +483,7 @@ pub(crate) mod tests {
                 ..RobustOptions::default()
             };
             let report = estimate(&HomographyEstimator, &data, &options).unwrap();
-            let found = report
-                .inlier_mask
-                .iter()
-                .zip(&truth)
-                .filter(|(m, t)| **m && **t)
-                .count();
+            let found = crate::geometry::ransac::tests::true_positives(&report.inlier_mask, &truth);
             assert!(
                 found + 2 >= true_inliers,
                 "{method:?}: {found}/{true_inliers}"

@@ -38,6 +38,7 @@ use super::pose_util::{
     skew,
 };
 use super::robust::Estimator;
+use super::transforms::{Pair3, umeyama};
 
 /// A camera pose `camera_from_world`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -337,23 +338,6 @@ fn pose_from_lambdas(
         .then_some(CameraPose { r, t })
 }
 
-/// Rigid transform `q ≈ R p + t` by SVD (Arun/Horn); `None` for < 3 points or degenerate sets.
-fn absolute_orientation(p: &[Vector3<f64>], q: &[Vector3<f64>]) -> Option<CameraPose> {
-    let n = p.len();
-    if n < 3 || q.len() != n {
-        return None;
-    }
-    let cp = p.iter().sum::<Vector3<f64>>() / n as f64;
-    let cq = q.iter().sum::<Vector3<f64>>() / n as f64;
-    let mut h = Matrix3::zeros();
-    for (a, b) in p.iter().zip(q) {
-        h += (b - cq) * (a - cp).transpose();
-    }
-    let r = nearest_rotation(&h)?;
-    let t = cq - r * cp;
-    Some(CameraPose { r, t })
-}
-
 /// Pairs of control points for the six distance constraints.
 const PAIRS: [(usize, usize); 6] = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)];
 
@@ -511,8 +495,18 @@ pub fn epnp(k: &Intrinsics, pixels: &[[f64; 2]], world: &[[f64; 3]]) -> Option<C
                 *p = -*p;
             }
         }
-        let Some(pose) = absolute_orientation(&pw, &pc) else {
+        // Rigid alignment world → camera of the reconstructed points (Kabsch).
+        let pairs: Vec<Pair3> = pw
+            .iter()
+            .zip(&pc)
+            .map(|(a, b)| [[a.x, a.y, a.z], [b.x, b.y, b.z]])
+            .collect();
+        let Some(fit) = umeyama(&pairs, false) else {
             continue;
+        };
+        let pose = CameraPose {
+            r: fit.rotation,
+            t: fit.translation,
         };
         let err: f64 = pixels
             .iter()

@@ -1,5 +1,6 @@
-//! Small helpers shared by the calibrated solvers: intrinsics from a [`Camera`], rotation
-//! conversions, the nearest rotation, and reading matrices, points and poses from values.
+//! Small helpers shared by the calibrated solvers: intrinsics from a [`Camera`], the rotation
+//! conversions of the geometry module (angle-axis ↔ matrix ↔ pose quaternion), the nearest
+//! rotation, and reading matrices, points and poses from values.
 
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector2, Vector3};
 use ocellus_engine::op::{Inputs, OpError};
@@ -136,6 +137,35 @@ pub fn pose_from_rt(r: &Matrix3<f64>, t: &Vector3<f64>) -> Pose {
         rotation: [q.w, q.i, q.j, q.k],
         translation: [t.x, t.y, t.z],
     }
+}
+
+/// Rotation matrix of an angle-axis vector (Rodrigues' formula); Taylor series below 1e-4 rad,
+/// so tiny and zero angles are exact to rounding.
+pub fn rodrigues(w: [f64; 3]) -> Matrix3<f64> {
+    let t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+    let theta = t2.sqrt();
+    let (a, b) = if theta < 1e-4 {
+        (1.0 - t2 / 6.0, 0.5 - t2 / 24.0)
+    } else {
+        (theta.sin() / theta, (1.0 - theta.cos()) / t2)
+    };
+    let k = skew(&Vector3::from(w));
+    Matrix3::identity() + k * a + k * k * b
+}
+
+/// Angle-axis vector of a rotation matrix (inverse of [`rodrigues`], angle in [0, π]); goes
+/// through the quaternion of [`pose_from_rt`] (`w ≥ 0`), so it is stable near 0 and near π.
+pub fn angle_axis(r: &Matrix3<f64>) -> [f64; 3] {
+    let q = pose_from_rt(r, &Vector3::zeros()).rotation;
+    let v = Vector3::new(q[1], q[2], q[3]);
+    let s = v.norm();
+    if s < 1e-300 {
+        return [0.0; 3];
+    }
+    // angle = 2·atan2(|v|, w); w ≥ 0 here.
+    let angle = 2.0 * s.atan2(q[0]);
+    let f = if s < 1e-8 { 2.0 / q[0] } else { angle / s };
+    [v[0] * f, v[1] * f, v[2] * f]
 }
 
 /// Rotation matrix and translation of a pose (the quaternion is normalized).
@@ -280,6 +310,28 @@ pub fn matrix_value(rows: usize, cols: usize, data: Vec<f64>) -> Result<Value, O
 mod tests {
     use super::*;
     use ocellus_engine::value::CameraModel;
+
+    #[test]
+    fn rodrigues_round_trip_and_small_angles() {
+        for w in [
+            [0.0, 0.0, 0.0],
+            [1e-12, -2e-12, 3e-12],
+            [1e-5, 2e-5, -1e-5],
+            [0.3, -0.2, 0.1],
+            [0.0, 0.0, std::f64::consts::PI - 1e-9],
+            [2.0, 1.0, -0.5],
+        ] {
+            let r = rodrigues(w);
+            assert!((r.determinant() - 1.0).abs() < 1e-12);
+            assert!((r * r.transpose() - Matrix3::identity()).norm() < 1e-12);
+            let back = angle_axis(&r);
+            let r2 = rodrigues(back);
+            assert!((r - r2).norm() < 1e-9, "{w:?}");
+        }
+        let w = [1e-9, 0.0, 0.0];
+        let back = angle_axis(&rodrigues(w));
+        assert!((back[0] - 1e-9).abs() < 1e-20);
+    }
 
     #[test]
     fn pose_round_trip_and_camera() {

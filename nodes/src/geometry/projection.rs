@@ -9,7 +9,8 @@ use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Intrinsics, Matrix, Value};
 
-use super::camera::{Lens, from_na, pose_from};
+use super::camera::{Lens, from_na};
+use super::pose_util::pose_from_rt;
 
 /// `P = K·[R | t]` split into its factors.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -278,7 +279,7 @@ impl Operator for CalibrateDlt {
             skew: d.k[1],
         };
         let camera = Lens::pinhole(k).to_camera(self.size[0], self.size[1]);
-        let pose = pose_from(&Matrix3::from_row_slice(&d.r), &Vector3::from(d.t));
+        let pose = pose_from_rt(&Matrix3::from_row_slice(&d.r), &Vector3::from(d.t));
         let projection =
             Matrix::new(3, 4, p.to_vec()).map_err(|e| OpError::failed(e.to_string()))?;
         Ok(Outputs::new()

@@ -486,8 +486,13 @@ where
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
+
+    /// How many data are flagged inliers both by `mask` and by the ground `truth`.
+    pub(crate) fn true_positives(mask: &[bool], truth: &[bool]) -> usize {
+        mask.iter().zip(truth).filter(|(m, t)| **m && **t).count()
+    }
 
     /// A 1-D location model: the datum itself, MIN_SAMPLES 1, the mean as non-minimal fit.
     struct Location;

@@ -4,7 +4,7 @@
 //! - [`triangulate_dlt`]: the homogeneous linear method (Hartley & Zisserman §12.2) for any
 //!   number of views. The world frame is first centred on the mean camera centre and scaled by
 //!   the camera spread, every equation row is scaled to unit norm, and the null vector of the
-//!   stacked system is taken from an SVD, so scene scales from 1e-3 to 1e6 behave alike and a
+//!   stacked system is taken from an SVD (a 4×4 one-sided Jacobi SVD for two views), so scene scales from 1e-3 to 1e6 behave alike and a
 //!   point at infinity comes back as `w ≈ 0` instead of a huge or NaN position.
 //! - [`triangulate_midpoint`]: the midpoint of the shortest segment between the two rays;
 //!   `None` for parallel rays.
@@ -98,17 +98,22 @@ pub fn triangulate_dlt(views: &[View], pixels: &[[f64; 2]]) -> Option<Vector4<f6
     if views.len() < 2 || views.len() != pixels.len() {
         return None;
     }
-    // Normalizing similarity: world = s·x' + c.
-    let centers: Vec<Vector3<f64>> = views.iter().map(View::center).collect();
-    let c = centers.iter().sum::<Vector3<f64>>() / centers.len() as f64;
-    let spread = centers.iter().map(|v| (v - c).norm()).fold(0.0, f64::max);
+    // Normalizing similarity: world = s·x' + c (no allocation: two passes over the views).
+    let c = views.iter().map(View::center).sum::<Vector3<f64>>() / views.len() as f64;
+    let spread = views
+        .iter()
+        .map(|v| (v.center() - c).norm())
+        .fold(0.0, f64::max);
     let s = if spread > 0.0 && spread.is_finite() {
         spread
     } else {
         1.0
     };
+    // Unit-norm rows; the first four are kept on the stack for the two-view case, more views
+    // accumulate the normal matrix.
+    let mut first = [Vector4::<f64>::zeros(); 4];
+    let mut count = 0usize;
     let mut ata = Matrix4::<f64>::zeros();
-    let mut rows: Vec<Vector4<f64>> = Vec::with_capacity(2 * views.len());
     for (v, p) in views.iter().zip(pixels) {
         let x = v.k.normalize(*p);
         let tn = (v.r * c + v.t) / s;
@@ -118,25 +123,26 @@ pub fn triangulate_dlt(views: &[View], pixels: &[[f64; 2]]) -> Option<Vector4<f6
         for row in [r0 - r2 * x.x, r1 - r2 * x.y] {
             let n = row.norm();
             if n > 0.0 && n.is_finite() {
-                rows.push(row / n);
+                let row = row / n;
+                if count < 4 {
+                    first[count] = row;
+                }
+                if views.len() > 2 {
+                    ata += row * row.transpose();
+                }
+                count += 1;
             }
         }
     }
-    if rows.len() < 3 {
+    if count < 3 {
         return None;
     }
-    let h = if rows.len() == 4 {
-        let a = Matrix4::from_rows(&[
-            rows[0].transpose(),
-            rows[1].transpose(),
-            rows[2].transpose(),
-            rows[3].transpose(),
-        ]);
-        null_vector4(&a)?
+    let h = if count <= 4 {
+        // Three or four rows (two views): the right singular vector of the smallest singular
+        // value by one-sided Jacobi, which keeps the small singular values to full relative
+        // accuracy (unlike the normal matrix, whose condition number is squared).
+        null_vector4(&first)?
     } else {
-        for r in &rows {
-            ata += r * r.transpose();
-        }
         let eig = ata.symmetric_eigen();
         let i = eig.eigenvalues.imin();
         eig.eigenvectors.column(i).into_owned()
@@ -155,13 +161,71 @@ pub fn triangulate_dlt(views: &[View], pixels: &[[f64; 2]]) -> Option<Vector4<f6
     Some(world / n)
 }
 
-/// Right singular vector of the smallest singular value of a 4×4 matrix.
-fn null_vector4(a: &Matrix4<f64>) -> Option<Vector4<f64>> {
-    let svd = a.svd(false, true);
-    let vt = svd.v_t?;
-    let i = svd.singular_values.imin();
-    let v = vt.row(i).transpose();
-    v.iter().all(|x| x.is_finite()).then_some(v)
+/// Right singular vector of the smallest singular value of the 4×4 matrix with rows `rows`
+/// (unused rows zero), by Hestenes' one-sided Jacobi SVD: plane rotations `V` orthogonalize the
+/// columns of `A·V`; then the column norms are the singular values and the columns of `V` the
+/// right singular vectors. Sweeps in a fixed order until no pair is rotated (at most 30;
+/// typically 3–4).
+fn null_vector4(rows: &[Vector4<f64>; 4]) -> Option<Vector4<f64>> {
+    // Columns of A (cols[j][i] = A[i][j]) and of V.
+    let mut cols = [[0.0f64; 4]; 4];
+    for (i, r) in rows.iter().enumerate() {
+        for j in 0..4 {
+            cols[j][i] = r[j];
+        }
+    }
+    let mut v = [[0.0f64; 4]; 4];
+    for (j, vj) in v.iter_mut().enumerate() {
+        vj[j] = 1.0;
+    }
+    let dot = |a: &[f64; 4], b: &[f64; 4]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3];
+    // Rotates rows p < q of `m` in their plane.
+    let rotate = |m: &mut [[f64; 4]; 4], p: usize, q: usize, cs: f64, sn: f64| {
+        let (head, tail) = m.split_at_mut(q);
+        for (a, b) in head[p].iter_mut().zip(tail[0].iter_mut()) {
+            let (x, y) = (*a, *b);
+            *a = cs * x - sn * y;
+            *b = sn * x + cs * y;
+        }
+    };
+    for _ in 0..30 {
+        let mut rotated = false;
+        for p in 0..3 {
+            for q in p + 1..4 {
+                let alpha = dot(&cols[p], &cols[p]);
+                let beta = dot(&cols[q], &cols[q]);
+                let gamma = dot(&cols[p], &cols[q]);
+                // Columns already orthogonal to working precision (squared test, no root).
+                if gamma * gamma <= f64::EPSILON * f64::EPSILON * alpha * beta {
+                    continue;
+                }
+                let zeta = (beta - alpha) / (2.0 * gamma);
+                // tan of the rotation angle, the smaller root; 1/(2ζ) where ζ² would overflow.
+                let t = if zeta.abs() < 1e150 {
+                    zeta.signum() / (zeta.abs() + (1.0 + zeta * zeta).sqrt())
+                } else {
+                    0.5 / zeta
+                };
+                // A rotation by less than the rounding unit changes nothing (it also stops the
+                // sweeps when a column is numerically zero and its product is pure rounding).
+                if t.abs() <= f64::EPSILON {
+                    continue;
+                }
+                let cs = 1.0 / (1.0 + t * t).sqrt();
+                let sn = cs * t;
+                rotate(&mut cols, p, q, cs, sn);
+                rotate(&mut v, p, q, cs, sn);
+                rotated = true;
+            }
+        }
+        if !rotated {
+            break;
+        }
+    }
+    let norms = cols.map(|col| dot(&col, &col));
+    let i = (0..4).fold(0, |best, j| if norms[j] < norms[best] { j } else { best });
+    let out = Vector4::from(v[i]);
+    out.iter().all(|x| x.is_finite()).then_some(out)
 }
 
 /// Midpoint of the shortest segment joining the two viewing rays; `None` when they are parallel
