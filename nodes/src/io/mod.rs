@@ -1,5 +1,6 @@
 //! Reading and writing files.
 
+pub mod read_bal;
 pub mod read_correspondences;
 pub mod read_image;
 pub mod write_image;
