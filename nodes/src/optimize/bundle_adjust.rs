@@ -140,11 +140,7 @@ pub fn problem_from_reconstruction(
 
 /// The reconstruction with the problem's cameras and points written back; each point's
 /// `error_px` is its mean reprojection error.
-pub fn apply_to_reconstruction(
-    rec: &Reconstruction,
-    problem: &BaProblem,
-    index: &ObservationIndex,
-) -> Reconstruction {
+pub fn apply_to_reconstruction(rec: &Reconstruction, problem: &BaProblem) -> Reconstruction {
     let mut out = rec.clone();
     for (im, cam) in out.images.iter_mut().zip(&problem.cameras) {
         im.camera_from_world = Pose::from_rotation_matrix(&cam.rotation, cam.translation);
@@ -180,7 +176,6 @@ pub fn apply_to_reconstruction(
             0.0
         };
     }
-    let _ = index;
     out
 }
 
@@ -504,7 +499,7 @@ pub fn bundle_adjust(
     refine_intrinsics: bool,
     fix_first_camera: bool,
 ) -> Result<(Reconstruction, Metrics, Matrix), String> {
-    let (mut problem, index) =
+    let (mut problem, _) =
         problem_from_reconstruction(rec, mode, refine_intrinsics, fix_first_camera)?;
     let n = problem.observations.len();
     let initial_rms = if n > 0 {
@@ -513,7 +508,7 @@ pub fn bundle_adjust(
         0.0
     };
     let summary = solve(&mut problem, options)?;
-    let refined = apply_to_reconstruction(rec, &problem, &index);
+    let refined = apply_to_reconstruction(rec, &problem);
     Ok((
         refined,
         report(&summary, &problem, initial_rms),
@@ -544,5 +539,136 @@ impl Operator for BundleAdjust {
             .with("reconstruction", Value::Reconstruction(Arc::new(refined)))
             .with("report", Value::metrics(metrics))
             .with("history", Value::Matrix(Arc::new(history))))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::optimize::ba::problem_cost;
+    use crate::optimize::synthetic::{SyntheticOptions, synthetic_problem};
+
+    fn scene() -> (BaProblem, Reconstruction) {
+        let (_, start) = synthetic_problem(&SyntheticOptions {
+            cameras: 5,
+            points: 60,
+            seed: 31,
+            ..SyntheticOptions::default()
+        })
+        .unwrap();
+        let rec = problem_to_reconstruction(&start, [640, 480]);
+        (start, rec)
+    }
+
+    #[test]
+    fn reconstruction_round_trip_keeps_the_cost() {
+        let (start, rec) = scene();
+        let (p, index) = problem_from_reconstruction(&rec, Mode::Full, true, false).unwrap();
+        assert_eq!(p.observations.len(), start.observations.len());
+        assert_eq!(index.keypoints.len(), p.observations.len());
+        let (a, b) = (
+            problem_cost(&p, RobustLoss::Trivial).unwrap(),
+            problem_cost(&start, RobustLoss::Trivial).unwrap(),
+        );
+        assert!((a - b).abs() <= 1e-9 * b, "{a} vs {b}");
+    }
+
+    #[test]
+    fn operator_modes() {
+        let (_, rec) = scene();
+        let run = |params: BundleAdjustParams| {
+            let op = BundleAdjust::new(params).unwrap();
+            bundle_adjust(
+                &rec,
+                &op.options,
+                op.mode,
+                op.refine_intrinsics,
+                op.fix_first_camera,
+            )
+            .unwrap()
+        };
+        let (full, report, history) = run(BundleAdjustParams::default());
+        assert!(report["final_cost"] < 0.01 * report["initial_cost"]);
+        assert!(report["reprojection_rms_px"] < 1.0);
+        assert_eq!(history.rows as f64, report["iterations"]);
+        assert_eq!(report["dense_solver"], 1.0);
+        assert!(full.points[0].error_px > 0.0);
+        let (motion, report_m, _) = run(BundleAdjustParams {
+            mode: ModeChoice::MotionOnly,
+            ..BundleAdjustParams::default()
+        });
+        assert_eq!(
+            motion.points,
+            rec.points
+                .iter()
+                .zip(&motion.points)
+                .map(|(a, b)| {
+                    ReconPoint {
+                        error_px: b.error_px,
+                        ..a.clone()
+                    }
+                })
+                .collect::<Vec<_>>()
+        );
+        assert!(report_m["final_cost"] < report_m["initial_cost"]);
+        let (structure, _, _) = run(BundleAdjustParams {
+            mode: ModeChoice::StructureOnly,
+            ..BundleAdjustParams::default()
+        });
+        assert_eq!(structure.cameras, rec.cameras);
+        for (a, b) in structure.images.iter().zip(&rec.images) {
+            // Poses go through a rotation matrix and back.
+            for (x, y) in a
+                .camera_from_world
+                .rotation
+                .iter()
+                .zip(&b.camera_from_world.rotation)
+            {
+                assert!((x - y).abs() < 1e-14);
+            }
+        }
+        let (gauge, _, _) = run(BundleAdjustParams {
+            fix_first_camera: true,
+            refine_intrinsics: false,
+            loss: LossChoice::Cauchy,
+            linear_solver: SolverChoice::IterativeSchur,
+            ..BundleAdjustParams::default()
+        });
+        assert_eq!(gauge.cameras, rec.cameras);
+        assert_eq!(
+            gauge.images[0].camera_from_world.translation,
+            rec.images[0].camera_from_world.translation
+        );
+    }
+
+    #[test]
+    fn unsupported_inputs_are_errors() {
+        let (_, mut rec) = scene();
+        rec.cameras.get_mut(&1).unwrap().model = CameraModel::OpenCv;
+        assert!(problem_from_reconstruction(&rec, Mode::Full, true, false).is_err());
+        let (_, mut rec) = scene();
+        rec.images[1].camera_id = 1;
+        let err = problem_from_reconstruction(&rec, Mode::Full, true, false).unwrap_err();
+        assert!(err.contains("shared"), "{err}");
+        assert!(problem_from_reconstruction(&rec, Mode::Full, false, false).is_ok());
+        let (_, mut rec) = scene();
+        rec.images[0].points2d[0].1 = Some(9999);
+        assert!(problem_from_reconstruction(&rec, Mode::Full, true, false).is_err());
+        for bad in [
+            BundleAdjustParams {
+                max_iterations: 0,
+                ..BundleAdjustParams::default()
+            },
+            BundleAdjustParams {
+                loss_scale_px: 0.0,
+                ..BundleAdjustParams::default()
+            },
+            BundleAdjustParams {
+                function_tolerance: f64::NAN,
+                ..BundleAdjustParams::default()
+            },
+        ] {
+            assert!(BundleAdjust::new(bad).is_err());
+        }
     }
 }
