@@ -40,7 +40,10 @@ pub struct ObservationIndex {
     pub keypoints: Vec<(usize, usize)>,
 }
 
-fn camera_intrinsics(cam: &Camera) -> Result<([f64; 3], [f64; 2], [bool; 3]), String> {
+/// `[f, k1, k2]`, the principal point, and which of `f, k1, k2` the model has.
+type CameraParts = ([f64; 3], [f64; 2], [bool; 3]);
+
+fn camera_intrinsics(cam: &Camera) -> Result<CameraParts, String> {
     let p = |i: usize| cam.params.get(i).copied().unwrap_or(0.0);
     if cam.params.len() != cam.model.param_count() {
         return Err(format!(
