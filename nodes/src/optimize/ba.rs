@@ -136,7 +136,7 @@ impl Default for BaOptions {
             linear_solver: LinearSolver::Auto,
             loss: RobustLoss::Trivial,
             initial_trust_region_radius: 1e4,
-            cg_tolerance: 1e-6,
+            cg_tolerance: 1e-3,
             cg_max_iterations: 500,
         }
     }
