@@ -9,6 +9,8 @@ use common::{example_graphs, files_below, ocellus, root, stderr, temp_dir};
 
 /// Graphs with a snapshot test below; a new graph must be added here.
 const SNAPSHOTTED: &[&str] = &[
+    "bal.ron",
+    "bundle_adjust.ron",
     "calibrate.ron",
     "edges.ron",
     "features.ron",
@@ -39,6 +41,16 @@ fn check_graph(graph: &str) {
     let two = summary(graph, 2);
     assert_eq!(one, two, "{graph}: summary differs between 1 and 2 threads");
     insta::assert_snapshot!(graph.trim_end_matches(".ron"), one);
+}
+
+#[test]
+fn bal() {
+    check_graph("bal.ron");
+}
+
+#[test]
+fn bundle_adjust() {
+    check_graph("bundle_adjust.ron");
 }
 
 #[test]

@@ -12,6 +12,7 @@ pub mod geometry;
 pub mod io;
 /// The `match` family (descriptor and patch matching); `match` is a keyword, hence the name.
 pub mod matching;
+pub mod optimize;
 pub mod segment;
 pub mod video;
 
@@ -106,6 +107,9 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<io::write_image::WriteImage>()?;
     registry.register::<io::read_correspondences::ReadCorrespondences>()?;
     registry.register::<io::read_camera::ReadCamera>()?;
+    registry.register::<io::read_bal::ReadBal>()?;
+    registry.register::<optimize::bundle_adjust::BundleAdjust>()?;
+    registry.register::<optimize::synthetic::SyntheticScene>()?;
     registry.register::<geometry::two_view::FindHomography>()?;
     registry.register::<geometry::two_view::FindFundamental>()?;
     registry.register::<geometry::two_view::MatchedPoints>()?;
