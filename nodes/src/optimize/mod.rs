@@ -1,6 +1,7 @@
 //! Nonlinear optimization: sparse bundle adjustment (Levenberg–Marquardt with the Schur
 //! complement), robust losses and generated test problems.
 
+pub mod affine;
 pub mod ba;
 pub mod bundle_adjust;
 pub mod loss;
