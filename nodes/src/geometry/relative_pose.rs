@@ -30,7 +30,7 @@ use super::ransac::{RobustOptions, estimate};
 use super::robust::Estimator;
 use super::two_view::{
     RobustMethod, TwoViewEstimate, check_robust, find_homography, gric, h33_normalized, mask_value,
-    matrix_value, options,
+    matrix_value, msac, options, refine_rounds,
 };
 
 /// A calibrated view of the correspondences: pinhole intrinsics and the points in ideal
@@ -103,10 +103,6 @@ pub struct EssentialEstimate {
     pub median_parallax_deg: f64,
     /// Robust-loop statistics, with `score` and `rms_px` of the final `E`.
     pub stats: TwoViewEstimate,
-}
-
-fn msac(residuals: &[f64], t2: f64) -> f64 {
-    residuals.iter().map(|&r| r.min(t2)).sum()
 }
 
 /// Sampson-distance refinement of `E = [t]× R` over `(R, t)`: state `R` (row-major, 9) and
@@ -232,36 +228,14 @@ pub fn find_essential(
     let estimator = EssentialEstimator { focal_px: focal };
     let report = estimate(&estimator, &normalized, options).map_err(|e| e.to_string())?;
     let t2 = options.threshold * options.threshold;
-    let mut model = report.model;
-    let mut residuals = vec![0.0; data.len()];
-    estimator.residuals(&model, &normalized, &mut residuals);
-    let mut score = msac(&residuals, t2);
-    let mut refined = false;
-    if refine {
-        for _ in 0..2 {
-            let inliers: Vec<NormalizedPair> = normalized
-                .iter()
-                .zip(&residuals)
-                .filter(|(_, r)| **r <= t2)
-                .map(|(c, _)| *c)
-                .collect();
-            let candidate = refine_essential(&model, &inliers, focal);
-            if candidate == model {
-                break;
-            }
-            let mut r = vec![0.0; data.len()];
-            estimator.residuals(&candidate, &normalized, &mut r);
-            let s = msac(&r, t2);
-            if s <= score {
-                model = candidate;
-                residuals = r;
-                score = s;
-                refined = true;
-            } else {
-                break;
-            }
-        }
-    }
+    let (model, residuals, score, refined) = refine_rounds(
+        &estimator,
+        &normalized,
+        report.model,
+        t2,
+        refine,
+        |m, inliers| refine_essential(m, inliers, focal),
+    );
     let inlier_mask: Vec<bool> = residuals.iter().map(|&r| r <= t2).collect();
     let inliers = inlier_mask.iter().filter(|&&b| b).count();
     if inliers < EssentialEstimator::MIN_SAMPLES {

@@ -103,41 +103,43 @@ pub fn correspondences(
     Ok(left.iter().zip(right).map(|(a, b)| [*a, *b]).collect())
 }
 
-fn msac(residuals: &[f64], t2: f64) -> f64 {
+/// MSAC score: squared residuals capped at the squared threshold `t2`, summed.
+pub(crate) fn msac(residuals: &[f64], t2: f64) -> f64 {
     residuals
         .iter()
         .map(|&r| if r <= t2 { r } else { t2 })
         .sum()
 }
 
-/// Robust fit, then LM refinement rounds on the inliers (kept only if the MSAC score does not
-/// increase).
-fn robust_two_view<E>(
+/// Up to two refinement rounds of `model` on its inliers (squared residual ≤ `t2`), each kept
+/// only if the MSAC score does not increase; stops early when a round changes nothing. Returns
+/// the model, its squared residuals, its MSAC score and whether a refinement was kept.
+pub(crate) fn refine_rounds<E>(
     estimator: &E,
-    data: &[Correspondence],
-    options: &RobustOptions,
+    data: &[E::Datum],
+    mut model: E::Model,
+    t2: f64,
     refine: bool,
-    refiner: impl Fn(&Matrix3<f64>, &[Correspondence]) -> (Matrix3<f64>, f64, f64),
-) -> Result<TwoViewEstimate, RobustError>
+    refiner: impl Fn(&E::Model, &[E::Datum]) -> E::Model,
+) -> (E::Model, Vec<f64>, f64, bool)
 where
-    E: Estimator<Datum = Correspondence, Model = Matrix3<f64>>,
+    E: Estimator,
+    E::Datum: Copy,
+    E::Model: PartialEq,
 {
-    let report = estimate(estimator, data, options)?;
-    let t2 = options.threshold * options.threshold;
-    let mut model = report.model;
     let mut residuals = vec![0.0; data.len()];
     estimator.residuals(&model, data, &mut residuals);
     let mut score = msac(&residuals, t2);
     let mut refined = false;
     if refine {
         for _ in 0..2 {
-            let inliers: Vec<Correspondence> = data
+            let inliers: Vec<E::Datum> = data
                 .iter()
                 .zip(&residuals)
                 .filter(|(_, r)| **r <= t2)
                 .map(|(c, _)| *c)
                 .collect();
-            let (candidate, _, _) = refiner(&model, &inliers);
+            let candidate = refiner(&model, &inliers);
             if candidate == model {
                 break;
             }
@@ -154,6 +156,27 @@ where
             }
         }
     }
+    (model, residuals, score, refined)
+}
+
+/// Robust fit, then LM refinement rounds on the inliers (kept only if the MSAC score does not
+/// increase).
+fn robust_two_view<E>(
+    estimator: &E,
+    data: &[Correspondence],
+    options: &RobustOptions,
+    refine: bool,
+    refiner: impl Fn(&Matrix3<f64>, &[Correspondence]) -> (Matrix3<f64>, f64, f64),
+) -> Result<TwoViewEstimate, RobustError>
+where
+    E: Estimator<Datum = Correspondence, Model = Matrix3<f64>>,
+{
+    let report = estimate(estimator, data, options)?;
+    let t2 = options.threshold * options.threshold;
+    let (model, residuals, score, refined) =
+        refine_rounds(estimator, data, report.model, t2, refine, |m, inliers| {
+            refiner(m, inliers).0
+        });
     let inlier_mask: Vec<bool> = residuals.iter().map(|&r| r <= t2).collect();
     let inliers = inlier_mask.iter().filter(|&&b| b).count();
     if inliers < E::MIN_SAMPLES {
