@@ -428,8 +428,8 @@ pub fn epnp(k: &Intrinsics, pixels: &[[f64; 2]], world: &[[f64; 3]]) -> Option<C
     };
     let lsq = |cols: &[usize]| -> Option<Vec<f64>> {
         let a = DMatrix::from_fn(6, cols.len(), |r, c| l[(r, cols[c])]);
-        let b = DMatrix::from_fn(6, 1, |r, _| rho[r]);
-        let sol = a.svd(true, true).solve(&b, 1e-12).ok()?;
+        let b = nalgebra::DVector::from_fn(6, |r, _| rho[r]);
+        let sol = super::pose_util::least_squares(&a, &b)?;
         Some(sol.iter().copied().collect())
     };
     let mut inits: Vec<[f64; 4]> = Vec::with_capacity(4);

@@ -306,6 +306,29 @@ pub fn matrix_value(rows: usize, cols: usize, data: Vec<f64>) -> Result<Value, O
         .map_err(|e| OpError::failed(e.to_string()))
 }
 
+/// Least-squares solution of the small dense system `a x ≈ b` (at most a few dozen columns).
+///
+/// Uses nalgebra's SVD but checks it: nalgebra 0.35's `DMatrix::svd` with singular vectors
+/// returns wrong singular values for some inputs (dimforge/nalgebra#1172), which the identity
+/// `Σσ² = ‖a‖²_F` exposes; then the normal equations (Cholesky of `aᵀa`) are solved instead.
+/// `None` when neither gives a finite solution.
+pub fn least_squares(
+    a: &nalgebra::DMatrix<f64>,
+    b: &nalgebra::DVector<f64>,
+) -> Option<nalgebra::DVector<f64>> {
+    let frobenius2 = a.norm_squared();
+    let svd = a.clone().svd(true, true);
+    let sum2: f64 = svd.singular_values.iter().map(|s| s * s).sum();
+    if (sum2 - frobenius2).abs() <= 1e-9 * frobenius2.max(f64::MIN_POSITIVE)
+        && let Ok(x) = svd.solve(b, 1e-12)
+        && x.iter().all(|v| v.is_finite())
+    {
+        return Some(x);
+    }
+    let x = (a.transpose() * a).cholesky()?.solve(&(a.transpose() * b));
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -360,5 +383,31 @@ mod tests {
         assert!((r.determinant() - 1.0).abs() < 1e-12);
         assert!((r.transpose() * r - Matrix3::identity()).norm() < 1e-12);
         assert!(nearest_rotation(&Matrix3::from_element(f64::NAN)).is_none());
+    }
+
+    #[test]
+    fn least_squares_survives_the_nalgebra_svd_failure() {
+        // nalgebra 0.35's dynamic SVD returns Σσ² = 21.0437 for this matrix (‖a‖²_F = 21), so
+        // its solve is wrong; the checked solver must still return the exact solution.
+        let a = nalgebra::DMatrix::from_row_slice(
+            3,
+            3,
+            &[1.0, 2.0, 2.0, 2.0, -1.0, -1.0, 2.0, 1.0, -1.0],
+        );
+        let x_true = nalgebra::DVector::from_column_slice(&[1.5, -0.25, 2.0]);
+        let x = least_squares(&a, &(&a * &x_true)).unwrap();
+        assert!((&x - &x_true).norm() < 1e-12, "{x}");
+        // A well-posed case: recovers the exact solution.
+        let a = nalgebra::DMatrix::from_row_slice(
+            6,
+            3,
+            &[
+                1.0, 2.0, 2.0, 2.0, -1.0, -1.0, 2.0, 1.0, -1.0, 1.0, 1.0, 1.0, 0.0, 1.0, 3.0, 1.0,
+                0.0, 0.0,
+            ],
+        );
+        let x_true = nalgebra::DVector::from_column_slice(&[0.5, -2.0, 1.25]);
+        let x = least_squares(&a, &(&a * &x_true)).unwrap();
+        assert!((x - x_true).norm() < 1e-12);
     }
 }
