@@ -247,6 +247,9 @@ ocellus_engine::param_enum! {
         DenseSchur = "dense_schur",
         /// Block-Jacobi preconditioned conjugate gradients.
         IterativeSchur = "iterative_schur",
+        /// Sparse Cholesky (faer) of the reduced camera matrix: only camera pairs that share a
+        /// point have a nonzero block.
+        SparseSchur = "sparse_schur",
     }
 }
 
@@ -414,6 +417,7 @@ Example:
             SolverChoice::Auto => LinearSolver::Auto,
             SolverChoice::DenseSchur => LinearSolver::DenseSchur,
             SolverChoice::IterativeSchur => LinearSolver::IterativeSchur,
+            SolverChoice::SparseSchur => LinearSolver::SparseSchur,
         };
         let mode = match p.mode {
             ModeChoice::Full => Mode::Full,
