@@ -18,8 +18,10 @@
 //!   a step is accepted when `ρ > 1e-3`, then `Δ ← Δ / max(1/3, 1 − (2ρ − 1)³)` (Nielsen), else
 //!   `Δ` shrinks by a doubling factor.
 //! - The linear system is reduced to the cameras by eliminating the 3×3 point blocks (Schur
-//!   complement `S = U − W V⁻¹ Wᵀ`). `S` is solved by a dense Cholesky (few cameras) or by
-//!   conjugate gradients on the implicit `S` with a block-Jacobi preconditioner (many cameras).
+//!   complement `S = U − W V⁻¹ Wᵀ`). `S` is solved by a dense Cholesky (few cameras), by a
+//!   sparse Cholesky (faer, AMD ordering; only camera pairs sharing a point have a block; the
+//!   symbolic factorization is done once per solve) or by conjugate gradients on the implicit
+//!   `S` with a block-Jacobi preconditioner (very large or dense reduced systems).
 //! - Stops like Ceres: relative cost change of a trial step `≤ function_tolerance` (the trial is
 //!   not applied), max gradient `≤ gradient_tolerance`, `‖δ‖ ≤ parameter_tolerance (‖x‖ +
 //!   parameter_tolerance)`, the iteration limit, or a collapsed trust region.
@@ -98,7 +100,13 @@ pub struct BaProblem {
 /// How the reduced camera system is solved.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum LinearSolver {
-    /// Dense Schur up to [`DENSE_MAX_CAMERAS`] cameras, iterative Schur beyond.
+    /// Dense Schur up to [`DENSE_MAX_CAMERAS`] cameras; beyond, sparse Schur while the reduced
+    /// matrix and its Cholesky factor stay within [`SPARSE_MAX_FACTOR_ENTRIES`] entries and one
+    /// factorization within [`SPARSE_MAX_FACTOR_FLOPS`] (the symbolic factorization is computed
+    /// to decide); iterative Schur otherwise (very large or very dense reduced systems). These
+    /// thresholds are provisional: the 400-camera dense bound is the earlier one, and the two
+    /// sparse bounds are sized by memory (400 MB of factor) and a ~minute-long factorization,
+    /// not yet set by a timing sweep.
     Auto,
     /// Dense Cholesky of the reduced camera matrix.
     DenseSchur,
