@@ -1,17 +1,37 @@
 //! Bundle adjustment of a BAL file with Ceres-like settings; prints costs, iterations and time.
 //!
-//!     cargo run --release -p ocellus-nodes --example bal -- FILE [--solver dense|iterative]
-//!         [--ftol 1e-6] [--gtol 1e-4] [--ptol 0] [--max-iterations 100] [--history]
+//!     cargo run --release -p ocellus-nodes --example bal -- FILE
+//!         [--solver auto|dense|sparse|iterative] [--ftol 1e-6] [--gtol 1e-4] [--ptol 0]
+//!         [--max-iterations 100] [--huber SCALE] [--history]
+//!
+//! `FILE` may instead be `--synthetic CAMERAS POINTS VISIBILITY`: the generated problem of
+//! `optimize::synthetic::synthetic_problem` (seed 1, its other defaults; each point is seen by
+//! about `VISIBILITY` × CAMERAS cameras), started from its perturbed start.
 
 use std::time::Instant;
 
 use ocellus_nodes::io::read_bal::{bal_to_problem, parse_bal};
 use ocellus_nodes::optimize::ba::{BaOptions, LinearSolver, problem_cost, solve};
 use ocellus_nodes::optimize::loss::RobustLoss;
+use ocellus_nodes::optimize::synthetic::{SyntheticOptions, synthetic_problem};
 
 fn main() -> Result<(), String> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let path = args.first().ok_or("usage: bal FILE [options]")?;
+    let usage = "usage: bal FILE|--synthetic CAMERAS POINTS VISIBILITY [options]";
+    let path = args.first().ok_or(usage)?;
+    let synthetic = if path == "--synthetic" {
+        let field = |k: usize| args.get(k).ok_or(usage.to_string());
+        let count =
+            |k: usize| -> Result<usize, String> { field(k)?.parse().map_err(|e| format!("{e}")) };
+        Some(SyntheticOptions {
+            cameras: count(1)?,
+            points: count(2)?,
+            visibility: field(3)?.parse().map_err(|e| format!("{e}"))?,
+            ..SyntheticOptions::default()
+        })
+    } else {
+        None
+    };
     let mut options = BaOptions {
         max_iterations: 100,
         gradient_tolerance: 1e-4,
@@ -19,16 +39,18 @@ fn main() -> Result<(), String> {
         ..BaOptions::default()
     };
     let mut history = false;
-    let mut i = 1;
+    let mut i = if synthetic.is_some() { 4 } else { 1 };
     while i < args.len() {
         let value = || args.get(i + 1).cloned().ok_or("missing value".to_string());
         let number = || -> Result<f64, String> { value()?.parse().map_err(|e| format!("{e}")) };
         match args[i].as_str() {
             "--solver" => {
                 options.linear_solver = match value()?.as_str() {
+                    "auto" => LinearSolver::Auto,
                     "dense" => LinearSolver::DenseSchur,
+                    "sparse" => LinearSolver::SparseSchur,
                     "iterative" => LinearSolver::IterativeSchur,
-                    _ => LinearSolver::Auto,
+                    s => return Err(format!("unknown solver {s}")),
                 };
                 i += 1;
             }
@@ -58,9 +80,13 @@ fn main() -> Result<(), String> {
         i += 1;
     }
     let t0 = Instant::now();
-    let text = std::fs::read_to_string(path).map_err(|e| e.to_string())?;
-    let file = parse_bal(&text)?;
-    let mut problem = bal_to_problem(&file);
+    let mut problem = match &synthetic {
+        Some(o) => synthetic_problem(o)?.1,
+        None => {
+            let text = std::fs::read_to_string(path).map_err(|e| e.to_string())?;
+            bal_to_problem(&parse_bal(&text)?)
+        }
+    };
     let t_read = t0.elapsed().as_secs_f64();
     let summary = solve(&mut problem, &options)?;
     let total = t0.elapsed().as_secs_f64();

@@ -18,8 +18,10 @@
 //!   a step is accepted when `ρ > 1e-3`, then `Δ ← Δ / max(1/3, 1 − (2ρ − 1)³)` (Nielsen), else
 //!   `Δ` shrinks by a doubling factor.
 //! - The linear system is reduced to the cameras by eliminating the 3×3 point blocks (Schur
-//!   complement `S = U − W V⁻¹ Wᵀ`). `S` is solved by a dense Cholesky (few cameras) or by
-//!   conjugate gradients on the implicit `S` with a block-Jacobi preconditioner (many cameras).
+//!   complement `S = U − W V⁻¹ Wᵀ`). `S` is solved by a dense Cholesky (few cameras), by a
+//!   sparse Cholesky (faer, AMD ordering; only camera pairs sharing a point have a block; the
+//!   symbolic factorization is done once per solve) or by conjugate gradients on the implicit
+//!   `S` with a block-Jacobi preconditioner (very large or dense reduced systems).
 //! - Stops like Ceres: relative cost change of a trial step `≤ function_tolerance` (the trial is
 //!   not applied), max gradient `≤ gradient_tolerance`, `‖δ‖ ≤ parameter_tolerance (‖x‖ +
 //!   parameter_tolerance)`, the iteration limit, or a collapsed trust region.
@@ -35,6 +37,12 @@
 
 use std::time::Instant;
 
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::sparse::linalg::cholesky::{
+    SymbolicCholesky, SymbolicCholeskyRaw, SymmetricOrdering, factorize_symbolic_cholesky,
+};
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
+use faer::{Conj, MatMut, Par, Side};
 use rayon::prelude::*;
 
 use super::loss::RobustLoss;
@@ -92,16 +100,34 @@ pub struct BaProblem {
 /// How the reduced camera system is solved.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum LinearSolver {
-    /// Dense Schur up to [`DENSE_MAX_CAMERAS`] cameras, iterative Schur beyond.
+    /// Dense Schur up to [`DENSE_MAX_CAMERAS`] cameras; beyond, sparse Schur while the reduced
+    /// matrix and its Cholesky factor stay within [`SPARSE_MAX_FACTOR_ENTRIES`] entries and one
+    /// factorization within [`SPARSE_MAX_FACTOR_FLOPS`] (the symbolic factorization is computed
+    /// to decide); iterative Schur otherwise (very large or very dense reduced systems). These
+    /// thresholds are provisional: the 400-camera dense bound is the earlier one, and the two
+    /// sparse bounds are sized by memory (400 MB of factor) and a ~minute-long factorization,
+    /// not yet set by a timing sweep.
     Auto,
     /// Dense Cholesky of the reduced camera matrix.
     DenseSchur,
     /// Block-Jacobi preconditioned conjugate gradients on the implicit reduced camera matrix.
     IterativeSchur,
+    /// Sparse Cholesky (faer, AMD ordering, sequential) of the reduced camera matrix over the
+    /// free camera degrees of freedom: only camera pairs that share a point have a nonzero
+    /// block. The symbolic factorization is computed once per solve.
+    SparseSchur,
 }
 
 /// Most cameras [`LinearSolver::Auto`] solves densely.
 pub const DENSE_MAX_CAMERAS: usize = 400;
+
+/// Most stored entries of the reduced camera matrix's upper triangle, and of its sparse
+/// Cholesky factor, for which [`LinearSolver::Auto`] picks the sparse solver (8 bytes each).
+pub const SPARSE_MAX_FACTOR_ENTRIES: usize = 50_000_000;
+
+/// Most floating-point operations (`Σ_j c_j²` over the factor's column counts) of one sparse
+/// numeric factorization for which [`LinearSolver::Auto`] picks the sparse solver.
+pub const SPARSE_MAX_FACTOR_FLOPS: f64 = 2e11;
 
 /// Solver settings; the defaults are Ceres'.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -870,6 +896,314 @@ fn dense_schur(layout: &Layout, el: &Elimination) -> Vec<f64> {
     s
 }
 
+// ------------------------------------------------------------------ sparse Schur
+
+/// A camera without a slot in the current neighbour list of [`sparse_schur_solve`].
+const NO_SLOT: u32 = u32::MAX;
+
+/// Whether camera `c` has at least one free degree of freedom.
+#[inline]
+fn camera_has_free_dof(layout: &Layout, c: usize) -> bool {
+    layout.camera_free[c].iter().any(|&f| f)
+}
+
+/// Per camera `a` with a free degree of freedom: the cameras `b < a` with a free degree of
+/// freedom that share a free point with `a`, ascending, then `a` itself; empty for cameras
+/// without free degrees of freedom. These are the nonzero 9×9 blocks of the upper triangle of
+/// the reduced camera matrix (column block `a`); fixed points do not couple cameras (their `G`
+/// is zero).
+fn camera_neighbours(layout: &Layout) -> Vec<Vec<u32>> {
+    let n_cam = layout.camera_obs.len();
+    (0..n_cam)
+        .into_par_iter()
+        .map_init(
+            || vec![NO_SLOT; n_cam],
+            |mark, a| {
+                if !camera_has_free_dof(layout, a) {
+                    return Vec::new();
+                }
+                let mut list = Vec::new();
+                for &i in &layout.camera_obs[a] {
+                    let j = layout.obs[i as usize].point as usize;
+                    if !layout.point_free[j] {
+                        continue;
+                    }
+                    for k in layout.point_start[j]..layout.point_start[j + 1] {
+                        let b = layout.obs[k].camera;
+                        // `mark[b] == a` means "already listed for a"; each a is visited once.
+                        if (b as usize) < a
+                            && mark[b as usize] != a as u32
+                            && camera_has_free_dof(layout, b as usize)
+                        {
+                            mark[b as usize] = a as u32;
+                            list.push(b);
+                        }
+                    }
+                }
+                list.sort_unstable();
+                list.push(a as u32);
+                list
+            },
+        )
+        .collect()
+}
+
+/// Sparsity pattern of the reduced camera matrix over the free camera degrees of freedom (the
+/// upper triangle in compressed sparse columns) and its symbolic Cholesky factorization with
+/// an AMD fill-reducing ordering. The pattern depends only on which cameras share a point, so
+/// it is computed once per solve and every iteration reuses it for the numeric factorization.
+struct SparseSchurPattern {
+    /// Order of the reduced system: the number of free camera degrees of freedom.
+    n: usize,
+    /// [`camera_neighbours`].
+    neighbours: Vec<Vec<u32>>,
+    /// `value_start[a]..value_start[a + 1]`: the entries of camera `a`'s columns.
+    value_start: Vec<usize>,
+    /// Upper-triangle pattern (rows ascending in each column).
+    matrix: SymbolicSparseColMat<usize>,
+    /// Symbolic factorization of `matrix`.
+    symbolic: SymbolicCholesky<usize>,
+}
+
+/// Free degrees of freedom of a camera, ascending.
+fn free_dofs(free: &[bool; CAMERA_DOF]) -> impl Iterator<Item = usize> + Clone + '_ {
+    (0..CAMERA_DOF).filter(|&d| free[d])
+}
+
+/// Number of stored upper-triangle entries of the reduced camera matrix for `neighbours`.
+fn sparse_schur_entries(layout: &Layout, neighbours: &[Vec<u32>]) -> usize {
+    neighbours
+        .iter()
+        .enumerate()
+        .map(|(a, list)| {
+            let fa = free_dofs(&layout.camera_free[a]).count();
+            let off: usize = list
+                .iter()
+                .filter(|&&b| b as usize != a)
+                .map(|&b| free_dofs(&layout.camera_free[b as usize]).count())
+                .sum();
+            if list.is_empty() {
+                0
+            } else {
+                fa * off + fa * (fa + 1) / 2
+            }
+        })
+        .sum()
+}
+
+impl SparseSchurPattern {
+    /// The pattern for `neighbours` (from [`camera_neighbours`]) and its symbolic
+    /// factorization; an error if faer runs out of memory or index range.
+    fn new(layout: &Layout, neighbours: Vec<Vec<u32>>) -> Result<SparseSchurPattern, String> {
+        let n_cam = layout.camera_obs.len();
+        // Row/column of each free degree of freedom, cameras in order.
+        let mut index = vec![[usize::MAX; CAMERA_DOF]; n_cam];
+        let mut n = 0;
+        for (c, idx) in index.iter_mut().enumerate() {
+            for d in free_dofs(&layout.camera_free[c]) {
+                idx[d] = n;
+                n += 1;
+            }
+        }
+        let entries = sparse_schur_entries(layout, &neighbours);
+        let mut col_ptr = Vec::with_capacity(n + 1);
+        let mut row_idx = Vec::with_capacity(entries);
+        let mut value_start = Vec::with_capacity(n_cam + 1);
+        col_ptr.push(0);
+        for (a, list) in neighbours.iter().enumerate() {
+            value_start.push(row_idx.len());
+            for p in free_dofs(&layout.camera_free[a]) {
+                for &b in list {
+                    let b = b as usize;
+                    for q in free_dofs(&layout.camera_free[b]) {
+                        if b == a && q > p {
+                            break;
+                        }
+                        row_idx.push(index[b][q]);
+                    }
+                }
+                col_ptr.push(row_idx.len());
+            }
+        }
+        value_start.push(row_idx.len());
+        let matrix = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
+        let symbolic = factorize_symbolic_cholesky(
+            matrix.as_ref(),
+            Side::Upper,
+            SymmetricOrdering::Amd,
+            Default::default(),
+        )
+        .map_err(|e| format!("sparse Schur: symbolic Cholesky failed: {e:?}"))?;
+        Ok(SparseSchurPattern {
+            n,
+            neighbours,
+            value_start,
+            matrix,
+            symbolic,
+        })
+    }
+
+    /// Stored entries of the Cholesky factor.
+    fn factor_entries(&self) -> usize {
+        self.symbolic.len_val()
+    }
+
+    /// Floating-point operations of one numeric factorization, `Σ_j c_j²` over the factor's
+    /// column counts `c_j` (an estimate within a small constant factor).
+    fn factor_flops(&self) -> f64 {
+        match self.symbolic.raw() {
+            SymbolicCholeskyRaw::Simplicial(s) => s
+                .col_ptr()
+                .windows(2)
+                .map(|w| {
+                    let c = (w[1] - w[0]) as f64;
+                    c * c
+                })
+                .sum(),
+            SymbolicCholeskyRaw::Supernodal(s) => {
+                let (begin, end) = (s.supernode_begin(), s.supernode_end());
+                let rows = s.col_ptr_for_row_idx();
+                (0..s.n_supernodes())
+                    .map(|k| {
+                        let below = (rows[k + 1] - rows[k]) as f64;
+                        // Σ_{c=1..width} (c + below)².
+                        (1..=end[k] - begin[k])
+                            .map(|c| {
+                                let h = c as f64 + below;
+                                h * h
+                            })
+                            .sum::<f64>()
+                    })
+                    .sum()
+            }
+        }
+    }
+}
+
+/// Solves the reduced camera system with a sparse Cholesky (faer, sequential) of `S` over the
+/// free camera degrees of freedom; fixed ones get a zero step, as in the dense path. `None`
+/// when `S` is not numerically positive definite (or the solution is not finite).
+fn sparse_schur_solve(
+    layout: &Layout,
+    el: &Elimination,
+    pattern: &SparseSchurPattern,
+) -> Option<Vec<[f64; CAMERA_DOF]>> {
+    let n_cam = el.u.len();
+    let n = pattern.n;
+    let mut dc = vec![[0.0; CAMERA_DOF]; n_cam];
+    if n == 0 {
+        return Some(dc);
+    }
+    let mut values = vec![0.0; pattern.value_start[n_cam]];
+    let mut parts: Vec<&mut [f64]> = Vec::with_capacity(n_cam);
+    {
+        let mut rest: &mut [f64] = &mut values;
+        for a in 0..n_cam {
+            let (head, tail) =
+                rest.split_at_mut(pattern.value_start[a + 1] - pattern.value_start[a]);
+            parts.push(head);
+            rest = tail;
+        }
+    }
+    // Each camera's columns: the same 9×9 block sums as `dense_schur`, in the same order, then
+    // scattered to the free entries.
+    parts.into_par_iter().enumerate().for_each_init(
+        || vec![NO_SLOT; n_cam],
+        |slot, (a, vals)| {
+            let list = &pattern.neighbours[a];
+            if list.is_empty() {
+                return;
+            }
+            for (k, &b) in list.iter().enumerate() {
+                slot[b as usize] = k as u32;
+            }
+            let mut blocks = vec![[0.0; 81]; list.len()];
+            blocks[list.len() - 1] = el.u[a];
+            for &i in &layout.camera_obs[a] {
+                let i = i as usize;
+                let j = layout.obs[i].point as usize;
+                if !layout.point_free[j] {
+                    continue;
+                }
+                let gi = &el.g[i];
+                for k in layout.point_start[j]..layout.point_start[j + 1] {
+                    let b = layout.obs[k].camera as usize;
+                    if b > a || slot[b] == NO_SLOT {
+                        continue;
+                    }
+                    let block = &mut blocks[slot[b] as usize];
+                    let gk = &el.g[k];
+                    let (g0, g1, g2) = (&gk[0..9], &gk[9..18], &gk[18..27]);
+                    for p in 0..9 {
+                        let (x0, x1, x2) = (gi[p], gi[9 + p], gi[18 + p]);
+                        let row = &mut block[9 * p..9 * p + 9];
+                        for q in 0..9 {
+                            row[q] -= x0 * g0[q] + x1 * g1[q] + x2 * g2[q];
+                        }
+                    }
+                }
+            }
+            let mut pos = 0;
+            for p in free_dofs(&layout.camera_free[a]) {
+                for (k, &b) in list.iter().enumerate() {
+                    let b = b as usize;
+                    for q in free_dofs(&layout.camera_free[b]) {
+                        if b == a && q > p {
+                            break;
+                        }
+                        vals[pos] = blocks[k][9 * p + q];
+                        pos += 1;
+                    }
+                }
+            }
+            for &b in list {
+                slot[b as usize] = NO_SLOT;
+            }
+        },
+    );
+    let symbolic = &pattern.symbolic;
+    let mut factor = vec![0.0; symbolic.len_val()];
+    let scratch = symbolic
+        .factorize_numeric_llt_scratch::<f64>(Par::Seq, Default::default())
+        .or(symbolic.solve_in_place_scratch::<f64>(1, Par::Seq));
+    let mut memory = MemBuffer::try_new(scratch).ok()?;
+    let stack = MemStack::new(&mut memory);
+    let s = SparseColMatRef::new(pattern.matrix.as_ref(), &values);
+    let llt = symbolic
+        .factorize_numeric_llt::<f64>(
+            &mut factor,
+            s,
+            Side::Upper,
+            Default::default(),
+            Par::Seq,
+            stack,
+            Default::default(),
+        )
+        .ok()?;
+    let mut b: Vec<f64> = el
+        .rhs
+        .iter()
+        .zip(&layout.camera_free)
+        .flat_map(|(r, free)| free_dofs(free).map(move |d| r[d]))
+        .collect();
+    llt.solve_in_place_with_conj(
+        Conj::No,
+        MatMut::from_column_major_slice_mut(&mut b, n, 1),
+        Par::Seq,
+        stack,
+    );
+    if !b.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let mut next = b.iter();
+    for (d, free) in dc.iter_mut().zip(&layout.camera_free) {
+        for k in free_dofs(free) {
+            d[k] = *next.next()?;
+        }
+    }
+    Some(dc)
+}
+
 /// `y = S x` for the implicit reduced camera matrix.
 fn schur_apply(
     layout: &Layout,
@@ -1013,22 +1347,75 @@ fn iterative_schur(
     Some((x, iterations))
 }
 
+/// The reduced camera system's solver as resolved for a solve.
+enum ReducedSolver {
+    /// [`LinearSolver::DenseSchur`].
+    Dense,
+    /// [`LinearSolver::SparseSchur`] with the solve's pattern.
+    Sparse(Box<SparseSchurPattern>),
+    /// [`LinearSolver::IterativeSchur`].
+    Iterative,
+}
+
+impl ReducedSolver {
+    /// The public name.
+    fn kind(&self) -> LinearSolver {
+        match self {
+            ReducedSolver::Dense => LinearSolver::DenseSchur,
+            ReducedSolver::Sparse(_) => LinearSolver::SparseSchur,
+            ReducedSolver::Iterative => LinearSolver::IterativeSchur,
+        }
+    }
+
+    /// Resolves `requested` for the problem ([`LinearSolver::Auto`]'s rule is documented
+    /// there).
+    fn resolve(layout: &Layout, requested: LinearSolver) -> Result<ReducedSolver, String> {
+        let n_cam = layout.camera_obs.len();
+        Ok(match requested {
+            LinearSolver::DenseSchur => ReducedSolver::Dense,
+            LinearSolver::IterativeSchur => ReducedSolver::Iterative,
+            LinearSolver::SparseSchur => ReducedSolver::Sparse(Box::new(SparseSchurPattern::new(
+                layout,
+                camera_neighbours(layout),
+            )?)),
+            LinearSolver::Auto if n_cam <= DENSE_MAX_CAMERAS => ReducedSolver::Dense,
+            LinearSolver::Auto => {
+                let neighbours = camera_neighbours(layout);
+                if sparse_schur_entries(layout, &neighbours) > SPARSE_MAX_FACTOR_ENTRIES {
+                    ReducedSolver::Iterative
+                } else {
+                    match SparseSchurPattern::new(layout, neighbours) {
+                        Ok(pattern)
+                            if pattern.factor_entries() <= SPARSE_MAX_FACTOR_ENTRIES
+                                && pattern.factor_flops() <= SPARSE_MAX_FACTOR_FLOPS =>
+                        {
+                            ReducedSolver::Sparse(Box::new(pattern))
+                        }
+                        _ => ReducedSolver::Iterative,
+                    }
+                }
+            }
+        })
+    }
+}
+
 fn compute_step(
     layout: &Layout,
     lin: &Linearization,
     scale_c: &[[f64; CAMERA_DOF]],
     scale_p: &[[f64; 3]],
     radius: f64,
-    solver: LinearSolver,
+    solver: &ReducedSolver,
     options: &BaOptions,
 ) -> Option<Step> {
     let el = eliminate(layout, lin, scale_c, scale_p, radius)?;
     let n_cam = el.u.len();
     let (dc, cg_iterations) = match solver {
-        LinearSolver::IterativeSchur => {
+        ReducedSolver::Iterative => {
             iterative_schur(layout, &el, options.cg_tolerance, options.cg_max_iterations)?
         }
-        _ => {
+        ReducedSolver::Sparse(pattern) => (sparse_schur_solve(layout, &el, pattern)?, 0),
+        ReducedSolver::Dense => {
             let n = CAMERA_DOF * n_cam;
             let mut s = dense_schur(layout, &el);
             if !cholesky(&mut s, n) {
@@ -1176,13 +1563,7 @@ pub fn solve(problem: &mut BaProblem, options: &BaOptions) -> Result<BaSummary, 
     validate(problem)?;
     let start = Instant::now();
     let layout = Layout::new(problem);
-    let solver = match options.linear_solver {
-        LinearSolver::Auto if problem.cameras.len() <= DENSE_MAX_CAMERAS => {
-            LinearSolver::DenseSchur
-        }
-        LinearSolver::Auto => LinearSolver::IterativeSchur,
-        s => s,
-    };
+    let solver = ReducedSolver::resolve(&layout, options.linear_solver)?;
     let mut cameras = problem.cameras.clone();
     let mut points = problem.points.clone();
     let mut lin = linearize(&layout, &cameras, &points, options.loss);
@@ -1202,7 +1583,7 @@ pub fn solve(problem: &mut BaProblem, options: &BaOptions) -> Result<BaSummary, 
         successful_steps: 1,
         unsuccessful_steps: 0,
         termination: Termination::MaxIterations,
-        linear_solver: solver,
+        linear_solver: solver.kind(),
         history: Vec::new(),
         time_s: 0.0,
     };
@@ -1235,7 +1616,7 @@ pub fn solve(problem: &mut BaProblem, options: &BaOptions) -> Result<BaSummary, 
                 summary.termination = Termination::MaxIterations;
                 break;
             }
-            let step = compute_step(&layout, &lin, &scale_c, &scale_p, radius, solver, options);
+            let step = compute_step(&layout, &lin, &scale_c, &scale_p, radius, &solver, options);
             let mut record = IterationRecord {
                 cost: lin.cost,
                 step_norm: 0.0,
@@ -1467,12 +1848,259 @@ mod tests {
             let s = pool.install(|| solve(&mut p, &options)).unwrap();
             (p, s.final_cost.to_bits())
         };
-        for solver in [LinearSolver::DenseSchur, LinearSolver::IterativeSchur] {
+        for solver in [
+            LinearSolver::DenseSchur,
+            LinearSolver::SparseSchur,
+            LinearSolver::IterativeSchur,
+        ] {
             let one = run(1, solver);
-            let three = run(3, solver);
-            assert_eq!(one.1, three.1, "{solver:?}");
-            assert_eq!(one.0, three.0, "{solver:?}");
+            for threads in [2, 3] {
+                let many = run(threads, solver);
+                assert_eq!(one.1, many.1, "{solver:?}, {threads} threads");
+                assert_eq!(one.0, many.0, "{solver:?}, {threads} threads");
+            }
         }
+    }
+
+    /// Steps of two resolved solvers at the start of `problem`, at `radius`.
+    fn first_steps(
+        problem: &BaProblem,
+        radius: f64,
+        solvers: [LinearSolver; 2],
+    ) -> [Option<Step>; 2] {
+        let layout = Layout::new(problem);
+        let lin = linearize(
+            &layout,
+            &problem.cameras,
+            &problem.points,
+            RobustLoss::Trivial,
+        );
+        let scale_c: Vec<[f64; CAMERA_DOF]> = lin
+            .u
+            .iter()
+            .map(|u| std::array::from_fn(|d| 1.0 / (1.0 + u[10 * d].sqrt())))
+            .collect();
+        let scale_p: Vec<[f64; 3]> = lin
+            .v
+            .iter()
+            .map(|v| std::array::from_fn(|d| 1.0 / (1.0 + v[4 * d].sqrt())))
+            .collect();
+        solvers.map(|kind| {
+            let solver = ReducedSolver::resolve(&layout, kind).unwrap();
+            assert_eq!(solver.kind(), kind);
+            let options = BaOptions::default();
+            compute_step(&layout, &lin, &scale_c, &scale_p, radius, &solver, &options)
+        })
+    }
+
+    fn relative_difference(a: &Step, b: &Step) -> f64 {
+        let flat = |s: &Step| -> Vec<f64> {
+            s.dc.iter()
+                .flatten()
+                .chain(s.dp.iter().flatten())
+                .copied()
+                .collect()
+        };
+        let (a, b) = (flat(a), flat(b));
+        let diff: f64 = a.iter().zip(&b).map(|(x, y)| (x - y) * (x - y)).sum();
+        let norm: f64 = a.iter().map(|x| x * x).sum();
+        (diff / norm).sqrt()
+    }
+
+    #[test]
+    fn sparse_step_equals_dense_step() {
+        let (_, start) = synthetic_problem(&SyntheticOptions {
+            cameras: 12,
+            points: 200,
+            visibility: 0.4,
+            seed: 31,
+            ..SyntheticOptions::default()
+        })
+        .unwrap();
+        let mut fixed = start.clone();
+        // First camera fixed (gauge), some intrinsics fixed on others, a few points fixed.
+        fixed.camera_free = vec![[true; CAMERA_DOF]; fixed.cameras.len()];
+        fixed.camera_free[0] = [false; CAMERA_DOF];
+        fixed.camera_free[3][7] = false;
+        fixed.camera_free[3][8] = false;
+        fixed.camera_free[5][6] = false;
+        fixed.point_free = (0..fixed.points.len()).map(|j| j % 7 != 0).collect();
+        for problem in [&start, &fixed] {
+            for radius in [1e4, 1.0, 1e-3] {
+                let [dense, sparse] = first_steps(
+                    problem,
+                    radius,
+                    [LinearSolver::DenseSchur, LinearSolver::SparseSchur],
+                );
+                let (dense, sparse) = (dense.unwrap(), sparse.unwrap());
+                let rel = relative_difference(&dense, &sparse);
+                assert!(rel < 1e-9, "radius {radius}: relative difference {rel}");
+                assert!(step_norm(&dense) > 0.0);
+                if !problem.camera_free.is_empty() {
+                    assert_eq!(sparse.dc[0], [0.0; CAMERA_DOF]);
+                    assert_eq!(sparse.dc[3][7], 0.0);
+                    assert_eq!(sparse.dc[5][6], 0.0);
+                    assert_eq!(sparse.dp[0], [0.0; 3]);
+                }
+            }
+        }
+        // The pattern leaves out camera pairs without a common point: a strict subset of the
+        // dense matrix for a sparse visibility graph.
+        let (_, sparse_graph) = synthetic_problem(&SyntheticOptions {
+            cameras: 40,
+            points: 400,
+            visibility: 0.05,
+            seed: 37,
+            ..SyntheticOptions::default()
+        })
+        .unwrap();
+        let layout = Layout::new(&sparse_graph);
+        let neighbours = camera_neighbours(&layout);
+        let blocks: usize = neighbours.iter().map(Vec::len).sum();
+        assert!(blocks < 40 * 41 / 2, "{blocks} blocks");
+        let [dense, sparse] = first_steps(
+            &sparse_graph,
+            1e4,
+            [LinearSolver::DenseSchur, LinearSolver::SparseSchur],
+        );
+        let rel = relative_difference(&dense.unwrap(), &sparse.unwrap());
+        assert!(
+            rel < 1e-9,
+            "sparse visibility graph: relative difference {rel}"
+        );
+    }
+
+    #[test]
+    fn sparse_and_dense_schur_reach_the_same_cost() {
+        let (truth, start) = small(0.5, 0.0, 41);
+        let true_cost = problem_cost(&truth, RobustLoss::Trivial).unwrap();
+        let options = BaOptions {
+            function_tolerance: 1e-10,
+            ..BaOptions::default()
+        };
+        let run = |solver| {
+            let mut p = start.clone();
+            let s = solve(
+                &mut p,
+                &BaOptions {
+                    linear_solver: solver,
+                    ..options
+                },
+            )
+            .unwrap();
+            (p, s)
+        };
+        let (_, dense) = run(LinearSolver::DenseSchur);
+        let (_, sparse) = run(LinearSolver::SparseSchur);
+        assert_eq!(sparse.linear_solver, LinearSolver::SparseSchur);
+        assert!(sparse.final_cost < 0.01 * sparse.initial_cost);
+        assert!(sparse.final_cost <= true_cost);
+        assert!(
+            (dense.final_cost - sparse.final_cost).abs() <= 1e-9 * dense.final_cost,
+            "{} vs {}",
+            dense.final_cost,
+            sparse.final_cost
+        );
+        // With a fixed first camera too.
+        let mut gauge = start.clone();
+        gauge.camera_free = vec![[true; CAMERA_DOF]; gauge.cameras.len()];
+        gauge.camera_free[0] = [false; CAMERA_DOF];
+        let mut a = gauge.clone();
+        let mut b = gauge;
+        let sa = solve(&mut a, &options).unwrap();
+        let sb = solve(
+            &mut b,
+            &BaOptions {
+                linear_solver: LinearSolver::SparseSchur,
+                ..options
+            },
+        )
+        .unwrap();
+        assert_eq!(b.cameras[0], start.cameras[0]);
+        assert!(
+            (sa.final_cost - sb.final_cost).abs() <= 1e-9 * sa.final_cost,
+            "{} vs {}",
+            sa.final_cost,
+            sb.final_cost
+        );
+    }
+
+    #[test]
+    fn singular_sparse_system_rejects_the_step_without_panicking() {
+        // A camera that sees nothing, a point seen once and a free gauge: damping keeps S
+        // definite, so the solve proceeds.
+        let (_, mut p) = small(0.5, 0.0, 43);
+        p.cameras.push(p.cameras[0]);
+        let s = solve(
+            &mut p,
+            &BaOptions {
+                linear_solver: LinearSolver::SparseSchur,
+                ..BaOptions::default()
+            },
+        )
+        .unwrap();
+        assert!(s.final_cost < s.initial_cost);
+        // An indefinite reduced matrix: the factorization fails and the step is rejected, as in
+        // the dense path.
+        let (_, start) = small(0.5, 0.0, 47);
+        let layout = Layout::new(&start);
+        let lin = linearize(&layout, &start.cameras, &start.points, RobustLoss::Trivial);
+        let ones_c = vec![[1.0; CAMERA_DOF]; start.cameras.len()];
+        let ones_p = vec![[1.0; 3]; start.points.len()];
+        let mut el = eliminate(&layout, &lin, &ones_c, &ones_p, 1.0).unwrap();
+        el.u[2][10 * 4] = -1e12;
+        let pattern = SparseSchurPattern::new(&layout, camera_neighbours(&layout)).unwrap();
+        assert!(sparse_schur_solve(&layout, &el, &pattern).is_none());
+        el.u[2][10 * 4] = f64::NAN;
+        assert!(sparse_schur_solve(&layout, &el, &pattern).is_none());
+        // A point at a camera's centre makes the linearization non-finite: every step is
+        // rejected until the trust region collapses, and nothing panics.
+        let mut p = start.clone();
+        let (o, r) = (
+            p.observations[0],
+            p.cameras[p.observations[0].camera as usize].rotation,
+        );
+        let x = p.points[o.point as usize];
+        p.cameras[o.camera as usize].translation =
+            std::array::from_fn(|i| -(r[3 * i] * x[0] + r[3 * i + 1] * x[1] + r[3 * i + 2] * x[2]));
+        let s = solve(
+            &mut p,
+            &BaOptions {
+                linear_solver: LinearSolver::SparseSchur,
+                ..BaOptions::default()
+            },
+        )
+        .unwrap();
+        assert!(!s.initial_cost.is_finite());
+        assert_eq!(s.successful_steps, 1, "{s:?}");
+        assert_eq!(s.termination, Termination::TrustRegionCollapsed);
+    }
+
+    #[test]
+    fn auto_picks_dense_for_few_cameras_and_sparse_beyond() {
+        let (_, p) = small(0.5, 0.0, 53);
+        let layout = Layout::new(&p);
+        assert_eq!(
+            ReducedSolver::resolve(&layout, LinearSolver::Auto)
+                .unwrap()
+                .kind(),
+            LinearSolver::DenseSchur
+        );
+        let (_, p) = synthetic_problem(&SyntheticOptions {
+            cameras: DENSE_MAX_CAMERAS + 1,
+            points: 2000,
+            visibility: 0.02,
+            seed: 59,
+            ..SyntheticOptions::default()
+        })
+        .unwrap();
+        let layout = Layout::new(&p);
+        assert_eq!(
+            ReducedSolver::resolve(&layout, LinearSolver::Auto)
+                .unwrap()
+                .kind(),
+            LinearSolver::SparseSchur
+        );
     }
 
     #[test]

@@ -241,12 +241,16 @@ pub fn problem_to_reconstruction(problem: &BaProblem, size: [u32; 2]) -> Reconst
 ocellus_engine::param_enum! {
     /// Linear solver of the reduced camera system.
     pub enum SolverChoice {
-        /// Dense Schur up to 400 cameras, iterative Schur beyond.
+        /// Dense Schur up to 400 cameras; beyond, sparse Schur while its Cholesky factor fits
+        /// (see `LinearSolver::Auto`), iterative Schur otherwise.
         Auto = "auto",
         /// Dense Cholesky of the reduced camera matrix.
         DenseSchur = "dense_schur",
         /// Block-Jacobi preconditioned conjugate gradients.
         IterativeSchur = "iterative_schur",
+        /// Sparse Cholesky (faer) of the reduced camera matrix: only camera pairs that share a
+        /// point have a nonzero block.
+        SparseSchur = "sparse_schur",
     }
 }
 
@@ -291,8 +295,9 @@ ocellus_engine::params! {
         gradient_tolerance: f64 = 1e-10,
         /// Stop when ‖step‖ ≤ this · (‖x‖ + this). Default 1e-8.
         parameter_tolerance: f64 = 1e-8,
-        /// Reduced camera system solver: "auto" (dense up to 400 cameras), "dense_schur",
-        /// "iterative_schur". Default "auto".
+        /// Reduced camera system solver: "auto" (dense up to 400 cameras, then sparse while
+        /// its factor fits, else iterative), "dense_schur", "sparse_schur", "iterative_schur".
+        /// Default "auto".
         linear_solver: SolverChoice = SolverChoice::Auto,
         /// Robust loss: "none", "huber", "cauchy", "soft_l1", "tukey". Default "none".
         loss: LossChoice = LossChoice::None,
@@ -331,9 +336,9 @@ camera keep their residual (BAL's cost; COLMAP zeroes them).
 Method: Levenberg–Marquardt with Ceres' trust-region strategy (Jacobi-scaled LM diagonal,
 initial radius 1e4, gain-ratio update after Nielsen) on analytic Jacobians; rotations on SO(3)
 (left increments); the points are eliminated by the Schur complement, and the reduced camera
-system is solved by dense Cholesky (≤ 400 cameras in "auto") or block-Jacobi preconditioned
-conjugate gradients. Robust losses use Triggs' correction as Ceres does. Stopping rules are
-Ceres' (function, gradient and parameter tolerance, iteration limit; the iteration count
+system is solved by dense Cholesky (≤ 400 cameras in "auto"), sparse Cholesky (faer; beyond
+400 cameras while the factor fits) or block-Jacobi preconditioned conjugate gradients. Robust
+losses use Triggs' correction as Ceres does. Stopping rules are Ceres' (function, gradient and parameter tolerance, iteration limit; the iteration count
 includes iteration 0). Jacobians and Schur products run in parallel over fixed-size chunks with
 ordered sums, so the result is the same for any thread count.
 
@@ -414,6 +419,7 @@ Example:
             SolverChoice::Auto => LinearSolver::Auto,
             SolverChoice::DenseSchur => LinearSolver::DenseSchur,
             SolverChoice::IterativeSchur => LinearSolver::IterativeSchur,
+            SolverChoice::SparseSchur => LinearSolver::SparseSchur,
         };
         let mode = match p.mode {
             ModeChoice::Full => Mode::Full,
