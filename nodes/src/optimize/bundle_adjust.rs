@@ -3,8 +3,11 @@
 //!
 //! The reconstruction is mapped to a [`BaProblem`]: one camera block per posed image (its
 //! `camera_from_world` pose and its camera's `f, k1, k2`), one point block per 3-D point, one
-//! observation per 2-D point that names a 3-D point. Supported camera models: `SIMPLE_PINHOLE`
-//! (f), `SIMPLE_RADIAL` (f, k) and `RADIAL` (f, k1, k2); the principal point is held fixed.
+//! observation per 2-D point that names a 3-D point. That fast path takes `SIMPLE_PINHOLE`
+//! (f), `SIMPLE_RADIAL` (f, k) and `RADIAL` (f, k1, k2) with one camera per image; the principal
+//! point is held fixed. Every other reconstruction (`PINHOLE`, `OPENCV`, `FULL_OPENCV`,
+//! `OPENCV_FISHEYE`, or intrinsics shared by several images) goes to the general sparse solver
+//! of [`super::bundle_general`].
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -20,7 +23,9 @@ use super::ba::{
     BaCamera, BaObservation, BaOptions, BaProblem, BaSummary, CAMERA_DOF, LinearSolver, solve,
     squared_errors,
 };
+use super::bundle_general::{GeneralBaOptions, bundle_adjust_general};
 use super::loss::RobustLoss;
+use super::nlls::{LinearSolverType, SolverOptions};
 
 /// Which blocks are refined.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -309,7 +314,8 @@ ocellus_engine::params! {
         /// Hold the first image's pose and intrinsics fixed (gauge fixing of rotation and
         /// translation; the scale stays free). Default false (as Ceres' BAL example).
         fix_first_camera: bool = false,
-        /// Refine focal length and radial distortion (principal point stays fixed). Default true.
+        /// Refine focal lengths and distortion (principal point and skew stay fixed). Default
+        /// true.
         refine_intrinsics: bool = true,
     }
 }
@@ -329,9 +335,16 @@ impl Op for BundleAdjust {
         "Refines the cameras and points of a reconstruction by sparse bundle adjustment.";
     const DOC: &'static str = r#"
 Minimizes the reprojection cost ½ Σ ρ(‖π(camera, X) − x‖²) (pixels², the BAL / Ceres convention)
-over the poses, the intrinsics f, k1, k2 (principal point fixed) and the 3-D points of a
-reconstruction whose cameras are SIMPLE_PINHOLE, SIMPLE_RADIAL or RADIAL. Points behind a
-camera keep their residual (BAL's cost; COLMAP zeroes them).
+over the poses, the camera parameters (principal point and skew fixed) and the 3-D points of a
+reconstruction. Cameras SIMPLE_PINHOLE, SIMPLE_RADIAL or RADIAL (f, k1, k2), one per image, take
+the fast path below, where points behind a camera keep their residual (BAL's cost; COLMAP
+zeroes them). Any other model (PINHOLE, OPENCV, FULL_OPENCV with skew, OPENCV_FISHEYE) or
+intrinsics shared by several images are adjusted by the general sparse solver (parameter
+blocks with SO(3) rotations, analytic Jacobians of each model, Cholesky of the normal
+equations: "dense_schur" selects the dense factorization, "sparse_schur" / "iterative_schur"
+the sparse one, "auto" by size); there, observations of points behind a pinhole camera at the
+start are left out (counted in the report's observations_not_visible) and a step that moves a
+point behind a camera is rejected.
 
 Method: Levenberg–Marquardt with Ceres' trust-region strategy (Jacobi-scaled LM diagonal,
 initial radius 1e4, gain-ratio update after Nielsen) on analytic Jacobians; rotations on SO(3)
@@ -500,7 +513,28 @@ pub fn history_matrix(summary: &BaSummary) -> Matrix {
     }
 }
 
+/// True when the reconstruction needs the general solver ([`super::bundle_general`]): a camera
+/// model outside the BAL family (`SIMPLE_PINHOLE`, `SIMPLE_RADIAL`, `RADIAL`), or intrinsics
+/// to refine that several images share. A missing camera stays on the fast path, which reports
+/// it.
+pub fn needs_general_solver(rec: &Reconstruction, refine_intrinsics: bool) -> bool {
+    let mut uses: HashMap<u32, usize> = HashMap::new();
+    for im in &rec.images {
+        *uses.entry(im.camera_id).or_default() += 1;
+    }
+    uses.iter().any(|(id, &n)| {
+        rec.cameras.get(id).is_some_and(|c| {
+            !matches!(
+                c.model,
+                CameraModel::SimplePinhole | CameraModel::SimpleRadial | CameraModel::Radial
+            ) || (refine_intrinsics && n > 1)
+        })
+    })
+}
+
 /// Bundle-adjusts a reconstruction: the refined reconstruction, the report and the history.
+/// The BAL family with one camera per image goes to the Schur-complement adjuster of
+/// [`super::ba`], every other reconstruction to [`super::bundle_general`].
 pub fn bundle_adjust(
     rec: &Reconstruction,
     options: &BaOptions,
@@ -508,6 +542,28 @@ pub fn bundle_adjust(
     refine_intrinsics: bool,
     fix_first_camera: bool,
 ) -> Result<(Reconstruction, Metrics, Matrix), String> {
+    if needs_general_solver(rec, refine_intrinsics) {
+        let general = GeneralBaOptions {
+            solver: SolverOptions {
+                max_iterations: options.max_iterations,
+                function_tolerance: options.function_tolerance,
+                gradient_tolerance: options.gradient_tolerance,
+                parameter_tolerance: options.parameter_tolerance,
+                linear_solver: match options.linear_solver {
+                    LinearSolver::Auto => LinearSolverType::Auto,
+                    LinearSolver::DenseSchur => LinearSolverType::DenseCholesky,
+                    _ => LinearSolverType::SparseCholesky,
+                },
+                initial_trust_region_radius: options.initial_trust_region_radius,
+                ..SolverOptions::default()
+            },
+            loss: options.loss,
+            mode,
+            refine_intrinsics,
+            fix_first_camera,
+        };
+        return bundle_adjust_general(rec, &general);
+    }
     let (mut problem, _) =
         problem_from_reconstruction(rec, mode, refine_intrinsics, fix_first_camera)?;
     let n = problem.observations.len();
