@@ -234,8 +234,8 @@ impl Manifold for SphereManifold {
         }
         let x_norm = x[..n].iter().map(|a| a * a).sum::<f64>().sqrt();
         let (c, s) = (v_norm.cos(), v_norm.sin() * x_norm / v_norm);
-        for k in 0..n {
-            out[k] = c * x[k] + s * v[k];
+        for ((o, a), b) in out[..n].iter_mut().zip(x).zip(&v) {
+            *o = c * a + s * b;
         }
         // Restore the norm to rounding.
         let out_norm = out[..n].iter().map(|a| a * a).sum::<f64>().sqrt();

@@ -816,14 +816,14 @@ struct Linearization {
 /// `residuals` (m) and `jacobian` (m × width) and returns `ρ(s)`.
 fn linearize_residual(
     block: &ResidualBlock,
-    local: &[LocalBlock],
-    width: usize,
+    layout: &Layout,
+    index: usize,
     values: &[&[f64]],
     plus_jacobians: &[Option<Vec<f64>>],
-    layout: &Layout,
     residuals: &mut [f64],
     jacobian: &mut [f64],
 ) -> Option<f64> {
+    let (local, width) = (&layout.locals[index], layout.widths[index]);
     let m = residuals.len();
     let params: Vec<&[f64]> = block.blocks.iter().map(|&b| values[b]).collect();
     let mut ambient: Vec<Vec<f64>> = block.blocks.iter().map(|_| Vec::new()).collect();
@@ -937,11 +937,10 @@ fn linearize(problem: &Problem, layout: &Layout, values: &[Vec<f64>]) -> Option<
                 );
                 sum += linearize_residual(
                     &problem.residuals[i],
-                    &layout.locals[i],
-                    layout.widths[i],
+                    layout,
+                    i,
                     &value_refs,
                     &plus_jacobians,
-                    layout,
                     &mut residuals[ra..rb],
                     &mut jacobians[ja..jb],
                 )?;
@@ -1879,8 +1878,8 @@ mod tests {
             .unwrap();
         let target = [1.0, -2.0, 3.0];
         let cost = numeric(3, &[3], move |v, r| {
-            for k in 0..3 {
-                r[k] = v[0][k] - target[k];
+            for ((rk, x), t) in r.iter_mut().zip(v[0]).zip(&target) {
+                *rk = x - t;
             }
             // Couple the coordinates so the fixed one matters.
             r[0] += 0.1 * v[0][1];
@@ -1933,8 +1932,8 @@ mod tests {
             let (a, b) = (*a, *b);
             let cost = numeric(3, &[3, 3], move |v, r| {
                 let q = rodrigues([v[0][0], v[0][1], v[0][2]]) * nalgebra::Vector3::from(a);
-                for k in 0..3 {
-                    r[k] = q[k] + v[1][k] - b[k];
+                for (k, rk) in r.iter_mut().enumerate() {
+                    *rk = q[k] + v[1][k] - b[k];
                 }
                 true
             });
@@ -1946,8 +1945,8 @@ mod tests {
         let wv = p.parameters(w).unwrap();
         let r = rodrigues([wv[0], wv[1], wv[2]]);
         assert!((r - r_true).abs().max() < 1e-7);
-        for k in 0..3 {
-            assert!((p.parameters(t).unwrap()[k] - t_true[k]).abs() < 1e-7);
+        for (estimate, truth) in p.parameters(t).unwrap().iter().zip(&t_true) {
+            assert!((estimate - truth).abs() < 1e-7);
         }
         // Unit quaternion.
         let mut p = Problem::new();
@@ -1981,8 +1980,8 @@ mod tests {
             qv[0], qv[1], qv[2], qv[3],
         ));
         assert!((uq.to_rotation_matrix().matrix() - r_true).abs().max() < 1e-7);
-        for k in 0..3 {
-            assert!((p.parameters(t).unwrap()[k] - t_true[k]).abs() < 1e-7);
+        for (estimate, truth) in p.parameters(t).unwrap().iter().zip(&t_true) {
+            assert!((estimate - truth).abs() < 1e-7);
         }
     }
 
