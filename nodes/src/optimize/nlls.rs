@@ -901,6 +901,9 @@ fn linearize_residual(
     Some(rho)
 }
 
+/// One chunk's `Σ ρ`, corrected residuals and tangent Jacobians.
+type ChunkLinearization = (f64, Vec<f64>, Vec<f64>);
+
 fn linearize(problem: &Problem, layout: &Layout, values: &[Vec<f64>]) -> Option<Linearization> {
     let value_refs: Vec<&[f64]> = values.iter().map(|v| v.as_slice()).collect();
     let plus_jacobians: Vec<Option<Vec<f64>>> = layout
@@ -915,7 +918,7 @@ fn linearize(problem: &Problem, layout: &Layout, values: &[Vec<f64>]) -> Option<
         })
         .collect();
     let n_res = problem.residuals.len();
-    let chunks: Vec<Option<(f64, Vec<f64>, Vec<f64>)>> = (0..n_res)
+    let chunks: Vec<Option<ChunkLinearization>> = (0..n_res)
         .step_by(RESIDUAL_CHUNK)
         .collect::<Vec<usize>>()
         .into_par_iter()
@@ -1901,7 +1904,9 @@ mod tests {
     }
 
     /// A rigid motion `q = R p + t` of 3-D points.
-    fn pose_data() -> (Vec<[f64; 3]>, Vec<[f64; 3]>, [f64; 3], [f64; 3]) {
+    type PoseData = (Vec<[f64; 3]>, Vec<[f64; 3]>, [f64; 3], [f64; 3]);
+
+    fn pose_data() -> PoseData {
         let mut rng = TestRng(5);
         let w_true = [0.4, -0.7, 1.1];
         let t_true = [0.5, -1.0, 2.0];
