@@ -5,4 +5,6 @@ pub mod affine;
 pub mod ba;
 pub mod bundle_adjust;
 pub mod loss;
+pub mod manifold;
+pub mod nlls;
 pub mod synthetic;
