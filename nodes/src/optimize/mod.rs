@@ -4,6 +4,8 @@
 pub mod affine;
 pub mod ba;
 pub mod bundle_adjust;
+pub mod bundle_general;
+pub mod camera_model;
 pub mod loss;
 pub mod manifold;
 pub mod nlls;

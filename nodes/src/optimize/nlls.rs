@@ -308,6 +308,8 @@ pub struct IterationRecord {
     pub radius: f64,
     /// Whether the step was accepted.
     pub accepted: bool,
+    /// Seconds since the start of the solve.
+    pub time_s: f64,
 }
 
 /// Result of [`Problem::solve`].
@@ -1342,6 +1344,7 @@ fn dogleg_step(
 }
 
 fn solve(problem: &mut Problem, options: &SolverOptions) -> Result<Summary, NllsError> {
+    let started = std::time::Instant::now();
     let layout = Layout::new(problem);
     let mut values: Vec<Vec<f64>> = problem.blocks.iter().map(|b| b.values.clone()).collect();
     let linear_solver_type = match options.linear_solver {
@@ -1375,6 +1378,7 @@ fn solve(problem: &mut Problem, options: &SolverOptions) -> Result<Summary, Nlls
         step_norm: 0.0,
         radius: options.initial_trust_region_radius,
         accepted: true,
+        time_s: started.elapsed().as_secs_f64(),
     });
     if layout.tangent_size == 0 || problem.residuals.is_empty() {
         summary.termination = Termination::Trivial;
@@ -1429,6 +1433,7 @@ fn solve(problem: &mut Problem, options: &SolverOptions) -> Result<Summary, Nlls
                 step_norm: 0.0,
                 radius,
                 accepted: false,
+                time_s: 0.0,
             };
             let mut accepted = None;
             let mut scaled_step_norm = 0.0;
@@ -1491,6 +1496,7 @@ fn solve(problem: &mut Problem, options: &SolverOptions) -> Result<Summary, Nlls
                 }
                 record.cost = lin.cost;
                 record.accepted = true;
+                record.time_s = started.elapsed().as_secs_f64();
                 summary.history.push(record);
                 if max_abs(&lin.gradient) <= options.gradient_tolerance {
                     summary.termination = Termination::GradientTolerance;
@@ -1511,6 +1517,7 @@ fn solve(problem: &mut Problem, options: &SolverOptions) -> Result<Summary, Nlls
                         }
                     }
                 }
+                record.time_s = started.elapsed().as_secs_f64();
                 summary.history.push(record);
                 if radius < 1e-32 {
                     summary.termination = Termination::TrustRegionCollapsed;
