@@ -8,6 +8,8 @@ pub mod calibrate;
 pub mod camera;
 pub mod decompose;
 pub mod essential;
+#[cfg(test)]
+mod extremes;
 pub mod fundamental;
 pub mod homography;
 pub mod lm;
