@@ -158,7 +158,11 @@ fn distort(model: CameraModel, c: &[f64], p: [f64; 3]) -> Option<([f64; 2], [f64
         CameraModel::SimplePinhole | CameraModel::Pinhole => ([x, y], [1.0, 0.0, 0.0, 1.0]),
         CameraModel::SimpleRadial | CameraModel::Radial => {
             let k1 = c[0];
-            let k2 = if model == CameraModel::Radial { c[1] } else { 0.0 };
+            let k2 = if model == CameraModel::Radial {
+                c[1]
+            } else {
+                0.0
+            };
             let radial = 1.0 + r2 * (k1 + k2 * r2);
             let dradial = 2.0 * (k1 + 2.0 * k2 * r2); // ∂radial/∂(x or y) = dradial · (x or y)
             dk[0] = x * r2;
@@ -305,7 +309,9 @@ mod tests {
         ),
         (
             CameraModel::RadialTangential,
-            &[800.0, 790.0, 320.0, 240.0, 0.5, -0.2, 0.05, 1e-3, -2e-3, 0.01],
+            &[
+                800.0, 790.0, 320.0, 240.0, 0.5, -0.2, 0.05, 1e-3, -2e-3, 0.01,
+            ],
         ),
         (
             CameraModel::Fisheye,
@@ -350,7 +356,7 @@ mod tests {
             for p in POINTS {
                 let proj = project(model, params, p).unwrap();
                 for k in 0..3 {
-                    let h = 1e-6 * p[k].abs().max(1e-3);
+                    let h = 1e-6 * p[k].abs().max(0.1);
                     let (mut a, mut b) = (p, p);
                     a[k] += h;
                     b[k] -= h;
@@ -368,7 +374,7 @@ mod tests {
                     }
                 }
                 for k in 0..n {
-                    let h = 1e-6 * params[k].abs().max(1e-3);
+                    let h = 1e-6 * params[k].abs().max(1.0);
                     let (mut a, mut b) = (params.to_vec(), params.to_vec());
                     a[k] += h;
                     b[k] -= h;

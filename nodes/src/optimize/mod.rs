@@ -2,6 +2,7 @@
 //! complement), robust losses and generated test problems.
 
 pub mod affine;
+pub mod affine_init;
 pub mod ba;
 pub mod bundle_adjust;
 pub mod bundle_general;
