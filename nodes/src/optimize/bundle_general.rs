@@ -181,11 +181,7 @@ fn point_errors(rec: &Reconstruction) -> (Vec<f64>, Vec<usize>, f64, usize) {
                 continue;
             };
             let x = rec.points[j].position;
-            let p = [
-                r[0] * x[0] + r[1] * x[1] + r[2] * x[2] + t[0],
-                r[3] * x[0] + r[4] * x[1] + r[5] * x[2] + t[1],
-                r[6] * x[0] + r[7] * x[1] + r[8] * x[2] + t[2],
-            ];
+            let p = camera_point(&r, &t, &x);
             if let Some(proj) = project(cam.model, &cam.params, p) {
                 let e2 = (proj.pixel[0] - xy[0]).powi(2) + (proj.pixel[1] - xy[1]).powi(2);
                 sum[j] += e2.sqrt();
@@ -196,6 +192,11 @@ fn point_errors(rec: &Reconstruction) -> (Vec<f64>, Vec<usize>, f64, usize) {
         }
     }
     (sum, count, sq, n)
+}
+
+/// `R X + t` for a row-major `R`.
+fn camera_point(r: &[f64; 9], t: &[f64; 3], x: &[f64; 3]) -> [f64; 3] {
+    [0, 1, 2].map(|i| r[3 * i] * x[0] + r[3 * i + 1] * x[1] + r[3 * i + 2] * x[2] + t[i])
 }
 
 fn rms(sq: f64, n: usize) -> f64 {
@@ -293,11 +294,7 @@ pub fn bundle_adjust_general(
                 return Err(format!("image {} has a non-finite keypoint", im.id));
             }
             let x = rec.points[j].position;
-            let p = [
-                r[0] * x[0] + r[1] * x[1] + r[2] * x[2] + t[0],
-                r[3] * x[0] + r[4] * x[1] + r[5] * x[2] + t[1],
-                r[6] * x[0] + r[7] * x[1] + r[8] * x[2] + t[2],
-            ];
+            let p = camera_point(&r, &t, &x);
             if project(cam.model, &cam.params, p).is_none() {
                 not_visible += 1;
                 continue;
@@ -451,11 +448,7 @@ mod tests {
             let t = im.camera_from_world.translation;
             for (xy, id) in &mut im.points2d {
                 let x = positions[&id.unwrap()];
-                let p = [
-                    r[0] * x[0] + r[1] * x[1] + r[2] * x[2] + t[0],
-                    r[3] * x[0] + r[4] * x[1] + r[5] * x[2] + t[1],
-                    r[6] * x[0] + r[7] * x[1] + r[8] * x[2] + t[2],
-                ];
+                let p = camera_point(&r, &t, &x);
                 *xy = project(model, params, p).unwrap().pixel;
             }
         }
