@@ -46,6 +46,7 @@ use faer::{Conj, MatMut, Par, Side};
 use rayon::prelude::*;
 
 use super::loss::RobustLoss;
+pub use super::solve_report::{IterationRecord, Termination};
 use crate::geometry::camera::rodrigues;
 
 /// Degrees of freedom of a camera block: `ω` (3), `t` (3), `f`, `k1`, `k2`.
@@ -103,10 +104,12 @@ pub enum LinearSolver {
     /// Dense Schur up to [`DENSE_MAX_CAMERAS`] cameras; beyond, sparse Schur while the reduced
     /// matrix and its Cholesky factor stay within [`SPARSE_MAX_FACTOR_ENTRIES`] entries and one
     /// factorization within [`SPARSE_MAX_FACTOR_FLOPS`] (the symbolic factorization is computed
-    /// to decide); iterative Schur otherwise (very large or very dense reduced systems). These
-    /// thresholds are provisional: the 400-camera dense bound is the earlier one, and the two
-    /// sparse bounds are sized by memory (400 MB of factor) and a ~minute-long factorization,
-    /// not yet set by a timing sweep.
+    /// to decide); iterative Schur otherwise (very large or very dense reduced systems). The
+    /// bounds come from a timing sweep on 2 cores (BENCHMARKS.md, "Bundle adjustment: choosing
+    /// the linear solver"): sparse is as fast as dense at 10 cameras and faster from 20 on,
+    /// even when every camera pair shares points; iterative is 2–10× faster than sparse on
+    /// well-conditioned problems past ~1e10 factorization flops but 17× slower on Ladybug, so
+    /// it takes over only where one factorization would cost seconds.
     Auto,
     /// Dense Cholesky of the reduced camera matrix.
     DenseSchur,
@@ -119,7 +122,7 @@ pub enum LinearSolver {
 }
 
 /// Most cameras [`LinearSolver::Auto`] solves densely.
-pub const DENSE_MAX_CAMERAS: usize = 400;
+pub const DENSE_MAX_CAMERAS: usize = 16;
 
 /// Most stored entries of the reduced camera matrix's upper triangle, and of its sparse
 /// Cholesky factor, for which [`LinearSolver::Auto`] picks the sparse solver (8 bytes each).
@@ -127,7 +130,7 @@ pub const SPARSE_MAX_FACTOR_ENTRIES: usize = 50_000_000;
 
 /// Most floating-point operations (`Σ_j c_j²` over the factor's column counts) of one sparse
 /// numeric factorization for which [`LinearSolver::Auto`] picks the sparse solver.
-pub const SPARSE_MAX_FACTOR_FLOPS: f64 = 2e11;
+pub const SPARSE_MAX_FACTOR_FLOPS: f64 = 3e10;
 
 /// Solver settings; the defaults are Ceres'.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -166,55 +169,6 @@ impl Default for BaOptions {
             cg_max_iterations: 500,
         }
     }
-}
-
-/// Why the solver stopped.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Termination {
-    /// Relative cost change below `function_tolerance`.
-    FunctionTolerance,
-    /// Gradient below `gradient_tolerance`.
-    GradientTolerance,
-    /// Step below `parameter_tolerance`.
-    ParameterTolerance,
-    /// Iteration limit.
-    MaxIterations,
-    /// The trust region shrank below 1e-32.
-    TrustRegionCollapsed,
-    /// Nothing to optimize (no free parameters or no observations).
-    Trivial,
-}
-
-impl Termination {
-    /// A numeric code for reports: 0 function, 1 gradient, 2 parameter tolerance, 3 iteration
-    /// limit, 4 collapsed trust region, 5 trivial.
-    pub fn code(self) -> f64 {
-        match self {
-            Termination::FunctionTolerance => 0.0,
-            Termination::GradientTolerance => 1.0,
-            Termination::ParameterTolerance => 2.0,
-            Termination::MaxIterations => 3.0,
-            Termination::TrustRegionCollapsed => 4.0,
-            Termination::Trivial => 5.0,
-        }
-    }
-}
-
-/// One iteration of the history.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct IterationRecord {
-    /// Cost after the iteration.
-    pub cost: f64,
-    /// Norm of the trial step (0 for iteration 0).
-    pub step_norm: f64,
-    /// Trust-region radius used for the step.
-    pub radius: f64,
-    /// Whether the step was accepted.
-    pub accepted: bool,
-    /// Seconds since the start.
-    pub time_s: f64,
-    /// Conjugate-gradient iterations (0 for the dense solver).
-    pub cg_iterations: usize,
 }
 
 /// Result of [`solve`].

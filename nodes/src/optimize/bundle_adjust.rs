@@ -13,7 +13,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use ocellus_engine::value::{
-    Camera, CameraModel, Matrix, Metrics, Pose, ReconImage, ReconPoint, Reconstruction,
+    Camera, CameraModel, Metrics, Pose, ReconImage, ReconPoint, Reconstruction,
 };
 use ocellus_engine::{
     Inputs, Op, OpError, Operator, Outputs, PortSpec, PortType, RunContext, Value,
@@ -26,6 +26,7 @@ use super::ba::{
 use super::bundle_general::{GeneralBaOptions, bundle_adjust_general};
 use super::loss::RobustLoss;
 use super::nlls::{LinearSolverType, SolverOptions};
+use super::solve_report::{SolveTotals, history_metrics, totals_metrics};
 
 /// Which blocks are refined.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -246,8 +247,8 @@ pub fn problem_to_reconstruction(problem: &BaProblem, size: [u32; 2]) -> Reconst
 ocellus_engine::param_enum! {
     /// Linear solver of the reduced camera system.
     pub enum SolverChoice {
-        /// Dense Schur up to 400 cameras; beyond, sparse Schur while its Cholesky factor fits
-        /// (see `LinearSolver::Auto`), iterative Schur otherwise.
+        /// Dense Schur up to 16 cameras; beyond, sparse Schur while one factorization stays
+        /// cheap (see `LinearSolver::Auto`), iterative Schur otherwise.
         Auto = "auto",
         /// Dense Cholesky of the reduced camera matrix.
         DenseSchur = "dense_schur",
@@ -300,8 +301,8 @@ ocellus_engine::params! {
         gradient_tolerance: f64 = 1e-10,
         /// Stop when ‖step‖ ≤ this · (‖x‖ + this). Default 1e-8.
         parameter_tolerance: f64 = 1e-8,
-        /// Reduced camera system solver: "auto" (dense up to 400 cameras, then sparse while
-        /// its factor fits, else iterative), "dense_schur", "sparse_schur", "iterative_schur".
+        /// Reduced camera system solver: "auto" (dense up to 16 cameras, then sparse while
+        /// one factorization stays cheap, else iterative), "dense_schur", "sparse_schur", "iterative_schur".
         /// Default "auto".
         linear_solver: SolverChoice = SolverChoice::Auto,
         /// Robust loss: "none", "huber", "cauchy", "soft_l1", "tukey". Default "none".
@@ -349,8 +350,8 @@ point behind a camera is rejected.
 Method: Levenberg–Marquardt with Ceres' trust-region strategy (Jacobi-scaled LM diagonal,
 initial radius 1e4, gain-ratio update after Nielsen) on analytic Jacobians; rotations on SO(3)
 (left increments); the points are eliminated by the Schur complement, and the reduced camera
-system is solved by dense Cholesky (≤ 400 cameras in "auto"), sparse Cholesky (faer; beyond
-400 cameras while the factor fits) or block-Jacobi preconditioned conjugate gradients. Robust
+system is solved by dense Cholesky (≤ 16 cameras in "auto"), sparse Cholesky (faer; beyond
+16 cameras while one factorization stays under 3e10 flops) or block-Jacobi preconditioned conjugate gradients. Robust
 losses use Triggs' correction as Ceres does. Stopping rules are Ceres' (function, gradient and parameter tolerance, iteration limit; the iteration count
 includes iteration 0). Jacobians and Schur products run in parallel over fixed-size chunks with
 ordered sums, so the result is the same for any thread count.
@@ -360,8 +361,9 @@ report (initial_cost, final_cost, iterations, successful_steps, unsuccessful_ste
 reprojection_rms_px = √(Σ‖r‖²/n) over observations, initial_reprojection_rms_px, termination:
 0 function tol., 1 gradient tol., 2 parameter tol., 3 iteration limit, 4 collapsed trust region,
 5 nothing to do; cameras, points, observations, dense_solver 1/0) and the per-iteration
-history as an N×6 Matrix (cost, step norm, trust radius, accepted 1/0, seconds since start,
-CG iterations).
+history as Metrics: for iteration i, zero-padded to five digits (00000 is the start), the keys
+i.cost, i.step_norm, i.trust_radius, i.accepted (1/0), i.time_s (seconds since the start) and
+i.cg_iterations.
 
 Reference: Triggs et al., "Bundle adjustment — a modern synthesis" (1999); Agarwal et al.,
 "Bundle adjustment in the large" (ECCV 2010); Ceres Solver (TrustRegionMinimizer, SchurComplement).
@@ -392,8 +394,9 @@ Example:
             ),
             PortSpec::new(
                 "history",
-                PortType::Matrix,
-                "Per iteration: cost, step norm, trust radius, accepted, seconds, CG iterations.",
+                PortType::Metrics,
+                "Per iteration i (00000 = the start): i.cost, i.step_norm, i.trust_radius, \
+                 i.accepted, i.time_s, i.cg_iterations.",
             ),
         ]
     }
@@ -464,53 +467,21 @@ pub fn report(summary: &BaSummary, problem: &BaProblem, initial_rms: f64) -> Met
     } else {
         0.0
     };
-    let mut m = Metrics::new();
-    m.insert("initial_cost".into(), summary.initial_cost);
-    m.insert("final_cost".into(), summary.final_cost);
-    m.insert("iterations".into(), summary.iterations as f64);
-    m.insert("successful_steps".into(), summary.successful_steps as f64);
-    m.insert(
-        "unsuccessful_steps".into(),
-        summary.unsuccessful_steps as f64,
-    );
-    m.insert("termination".into(), summary.termination.code());
+    let mut m = totals_metrics(&SolveTotals {
+        initial_cost: summary.initial_cost,
+        final_cost: summary.final_cost,
+        iterations: summary.iterations,
+        successful_steps: summary.successful_steps,
+        unsuccessful_steps: summary.unsuccessful_steps,
+        termination: summary.termination,
+        dense_solver: summary.linear_solver == LinearSolver::DenseSchur,
+    });
     m.insert("reprojection_rms_px".into(), rms);
     m.insert("initial_reprojection_rms_px".into(), initial_rms);
     m.insert("cameras".into(), problem.cameras.len() as f64);
     m.insert("points".into(), problem.points.len() as f64);
     m.insert("observations".into(), n as f64);
-    m.insert(
-        "dense_solver".into(),
-        if summary.linear_solver == LinearSolver::DenseSchur {
-            1.0
-        } else {
-            0.0
-        },
-    );
     m
-}
-
-/// History as an N×6 matrix.
-pub fn history_matrix(summary: &BaSummary) -> Matrix {
-    let data: Vec<f64> = summary
-        .history
-        .iter()
-        .flat_map(|h| {
-            [
-                h.cost,
-                h.step_norm,
-                h.radius,
-                if h.accepted { 1.0 } else { 0.0 },
-                h.time_s,
-                h.cg_iterations as f64,
-            ]
-        })
-        .collect();
-    Matrix {
-        rows: summary.history.len(),
-        cols: 6,
-        data,
-    }
 }
 
 /// True when the reconstruction needs the general solver ([`super::bundle_general`]): a camera
@@ -541,7 +512,7 @@ pub fn bundle_adjust(
     mode: Mode,
     refine_intrinsics: bool,
     fix_first_camera: bool,
-) -> Result<(Reconstruction, Metrics, Matrix), String> {
+) -> Result<(Reconstruction, Metrics, Metrics), String> {
     if needs_general_solver(rec, refine_intrinsics) {
         let general = GeneralBaOptions {
             solver: SolverOptions {
@@ -577,7 +548,7 @@ pub fn bundle_adjust(
     Ok((
         refined,
         report(&summary, &problem, initial_rms),
-        history_matrix(&summary),
+        history_metrics(&summary.history),
     ))
 }
 
@@ -603,7 +574,7 @@ impl Operator for BundleAdjust {
         Ok(Outputs::new()
             .with("reconstruction", Value::Reconstruction(Arc::new(refined)))
             .with("report", Value::metrics(metrics))
-            .with("history", Value::Matrix(Arc::new(history))))
+            .with("history", Value::metrics(history)))
     }
 }
 
@@ -655,7 +626,10 @@ mod tests {
         let (full, report, history) = run(BundleAdjustParams::default());
         assert!(report["final_cost"] < 0.01 * report["initial_cost"]);
         assert!(report["reprojection_rms_px"] < 1.0);
-        assert_eq!(history.rows as f64, report["iterations"]);
+        assert_eq!(
+            history.keys().filter(|k| k.ends_with(".cost")).count() as f64,
+            report["iterations"]
+        );
         assert_eq!(report["dense_solver"], 1.0);
         assert!(full.points[0].error_px > 0.0);
         let (motion, report_m, _) = run(BundleAdjustParams {

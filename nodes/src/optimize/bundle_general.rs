@@ -18,15 +18,14 @@
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
-use ocellus_engine::value::{CameraModel, Matrix, Metrics, Pose, Reconstruction};
+use ocellus_engine::value::{CameraModel, Metrics, Pose, Reconstruction};
 
 use super::bundle_adjust::Mode;
 use super::camera_model::project;
 use super::loss::RobustLoss;
 use super::manifold::{AngleAxisManifold, SubsetManifold};
-use super::nlls::{
-    BlockId, CostFunction, LinearSolverType, Problem, SolverOptions, Summary, Termination,
-};
+use super::nlls::{BlockId, CostFunction, LinearSolverType, Problem, SolverOptions, Summary};
+use super::solve_report::{SolveTotals, history_metrics, totals_metrics};
 use crate::geometry::pose_util::{angle_axis, rodrigues, skew};
 
 /// Settings of [`bundle_adjust_general`].
@@ -147,18 +146,6 @@ fn constant_intrinsics(model: CameraModel) -> &'static [usize] {
     }
 }
 
-/// Termination as the report's numeric code (as [`super::ba::Termination::code`]).
-fn termination_code(t: Termination) -> f64 {
-    match t {
-        Termination::FunctionTolerance => 0.0,
-        Termination::GradientTolerance => 1.0,
-        Termination::ParameterTolerance => 2.0,
-        Termination::MaxIterations => 3.0,
-        Termination::TrustRegionCollapsed => 4.0,
-        Termination::Trivial => 5.0,
-    }
-}
-
 /// Squared reprojection errors of the observations the model sees, per point.
 fn point_errors(rec: &Reconstruction) -> (Vec<f64>, Vec<usize>, f64, usize) {
     let index: HashMap<u64, usize> = rec
@@ -205,11 +192,11 @@ fn rms(sq: f64, n: usize) -> f64 {
 
 /// Bundle-adjusts a reconstruction of any camera models: the refined reconstruction, the
 /// report (the keys of [`super::bundle_adjust::report`], plus `observations_not_visible`) and
-/// the N×6 history (cost, step norm, trust radius, accepted, seconds since start, 0).
+/// the history ([`history_metrics`]).
 pub fn bundle_adjust_general(
     rec: &Reconstruction,
     options: &GeneralBaOptions,
-) -> Result<(Reconstruction, Metrics, Matrix), String> {
+) -> Result<(Reconstruction, Metrics, Metrics), String> {
     let mut problem = Problem::new();
     // Cameras, in id order (BTreeMap) so the problem's layout is deterministic.
     let used: BTreeMap<u32, ()> = rec.images.iter().map(|im| (im.camera_id, ())).collect();
@@ -358,50 +345,22 @@ pub fn bundle_adjust_general(
     for ((p, s), c) in out.points.iter_mut().zip(&sum).zip(&count) {
         p.error_px = if *c > 0 { s / *c as f64 } else { 0.0 };
     }
-    let mut m = Metrics::new();
-    m.insert("initial_cost".into(), summary.initial_cost);
-    m.insert("final_cost".into(), summary.final_cost);
-    m.insert("iterations".into(), summary.iterations as f64);
-    m.insert("successful_steps".into(), summary.successful_steps as f64);
-    m.insert(
-        "unsuccessful_steps".into(),
-        summary.unsuccessful_steps as f64,
-    );
-    m.insert("termination".into(), termination_code(summary.termination));
+    let mut m = totals_metrics(&SolveTotals {
+        initial_cost: summary.initial_cost,
+        final_cost: summary.final_cost,
+        iterations: summary.iterations,
+        successful_steps: summary.successful_steps,
+        unsuccessful_steps: summary.unsuccessful_steps,
+        termination: summary.termination,
+        dense_solver: summary.linear_solver == LinearSolverType::DenseCholesky,
+    });
     m.insert("reprojection_rms_px".into(), rms(sq, n));
     m.insert("initial_reprojection_rms_px".into(), rms(sq0, n0));
     m.insert("cameras".into(), rec.images.len() as f64);
     m.insert("points".into(), rec.points.len() as f64);
     m.insert("observations".into(), problem.num_residual_blocks() as f64);
     m.insert("observations_not_visible".into(), not_visible as f64);
-    m.insert(
-        "dense_solver".into(),
-        if summary.linear_solver == LinearSolverType::DenseCholesky {
-            1.0
-        } else {
-            0.0
-        },
-    );
-    let data: Vec<f64> = summary
-        .history
-        .iter()
-        .flat_map(|h| {
-            [
-                h.cost,
-                h.step_norm,
-                h.radius,
-                if h.accepted { 1.0 } else { 0.0 },
-                h.time_s,
-                0.0,
-            ]
-        })
-        .collect();
-    let history = Matrix {
-        rows: summary.history.len(),
-        cols: 6,
-        data,
-    };
-    Ok((out, m, history))
+    Ok((out, m, history_metrics(&summary.history)))
 }
 
 #[cfg(test)]
@@ -577,7 +536,10 @@ mod tests {
                 );
                 assert!(report["reprojection_rms_px"] < 1e-5, "{report:?}");
                 assert_eq!(report["observations_not_visible"], 0.0);
-                assert_eq!(history.rows as f64, report["iterations"]);
+                assert_eq!(
+                    history.keys().filter(|k| k.ends_with(".cost")).count() as f64,
+                    report["iterations"]
+                );
                 // The principal point (and skew) never move; focal lengths are recovered.
                 let used: Vec<u32> = out.images.iter().map(|im| im.camera_id).collect();
                 for (id, c) in out.cameras.iter().filter(|(id, _)| used.contains(id)) {

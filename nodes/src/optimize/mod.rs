@@ -10,4 +10,5 @@ pub mod camera_model;
 pub mod loss;
 pub mod manifold;
 pub mod nlls;
+pub mod solve_report;
 pub mod synthetic;

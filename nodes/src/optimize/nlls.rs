@@ -55,6 +55,7 @@ use super::loss::RobustLoss;
 pub use super::manifold::{
     AngleAxisManifold, Euclidean, Manifold, QuaternionManifold, SphereManifold, SubsetManifold,
 };
+pub use super::solve_report::{IterationRecord, Termination};
 
 /// Residual blocks per parallel evaluation chunk.
 const RESIDUAL_CHUNK: usize = 64;
@@ -278,38 +279,6 @@ impl Default for SolverOptions {
             min_relative_decrease: 1e-3,
         }
     }
-}
-
-/// Why the solver stopped.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Termination {
-    /// Relative cost change below `function_tolerance`.
-    FunctionTolerance,
-    /// Gradient below `gradient_tolerance`.
-    GradientTolerance,
-    /// Step below `parameter_tolerance`.
-    ParameterTolerance,
-    /// Iteration limit.
-    MaxIterations,
-    /// The trust region shrank below 1e-32.
-    TrustRegionCollapsed,
-    /// Nothing to optimize (no variable coordinates or no residual blocks).
-    Trivial,
-}
-
-/// One iteration of the history.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct IterationRecord {
-    /// Cost after the iteration.
-    pub cost: f64,
-    /// Norm of the trial step in the tangent space (0 for iteration 0 and failed solves).
-    pub step_norm: f64,
-    /// Trust-region radius used for the step.
-    pub radius: f64,
-    /// Whether the step was accepted.
-    pub accepted: bool,
-    /// Seconds since the start of the solve.
-    pub time_s: f64,
 }
 
 /// Result of [`Problem::solve`].
@@ -1379,6 +1348,7 @@ fn solve(problem: &mut Problem, options: &SolverOptions) -> Result<Summary, Nlls
         radius: options.initial_trust_region_radius,
         accepted: true,
         time_s: started.elapsed().as_secs_f64(),
+        cg_iterations: 0,
     });
     if layout.tangent_size == 0 || problem.residuals.is_empty() {
         summary.termination = Termination::Trivial;
@@ -1434,6 +1404,7 @@ fn solve(problem: &mut Problem, options: &SolverOptions) -> Result<Summary, Nlls
                 radius,
                 accepted: false,
                 time_s: 0.0,
+                cg_iterations: 0,
             };
             let mut accepted = None;
             let mut scaled_step_norm = 0.0;
