@@ -32,11 +32,13 @@
 //! | 17 | Text | string |
 //! | 18 | Metrics | `u64 n`, n × (string name, `f64`), names strictly increasing |
 //! | 19 | List | element type, `u64 n`, n values |
+//! | 20 | Bvh | nodes (`u64 n`, n × (`f32 × 3` min, `u32` offset, `f32 × 3` max, `u32` count)), primitives (`u64 n`, `u32` each), corners (`u64 n`, `f32 × 9` each), mesh |
 //!
 //! A camera is `u8 model (0 SIMPLE_PINHOLE, 1 PINHOLE, 2 SIMPLE_RADIAL, 3 RADIAL, 4 OPENCV,
 //! 5 radial–tangential with skew, 6 fisheye with skew), u32
-//! width, u32 height, u64 n`, n f64 params. An element type is a `u8`: 0..=18 the non-list types in
-//! the order of [`SCALAR_PORT_TYPES`], 19 = `List` followed by its element type.
+//! width, u32 height, u64 n`, n f64 params. An element type is a `u8`: the value tag of the type
+//! above (0..=18 and 20, the non-list types in the order of [`SCALAR_PORT_TYPES`] with 19 left
+//! out), 19 = `List` followed by its element type.
 //!
 //! Floats are stored by their bits, so NaN payloads and `-0.0` survive a round trip.
 //!
@@ -53,8 +55,8 @@ use std::sync::Arc;
 
 use crate::types::{PortType, SCALAR_PORT_TYPES};
 use crate::value::{
-    Animation, AnimationChannel, Camera, CameraModel, Channels, Depth, Descriptors, Image,
-    Keypoint, Light, Match, Matrix, Mesh, Metrics, PixelData, PointCloud, Pose, ReconImage,
+    Animation, AnimationChannel, Bvh, BvhNode, Camera, CameraModel, Channels, Depth, Descriptors,
+    Image, Keypoint, Light, Match, Matrix, Mesh, Metrics, PixelData, PointCloud, Pose, ReconImage,
     ReconPoint, Reconstruction, Scene, SceneObject, TrackElement, Tracks, Value, ValueList,
 };
 
@@ -156,10 +158,23 @@ mod tag {
     pub const TEXT: u8 = 17;
     pub const METRICS: u8 = 18;
     pub const LIST: u8 = 19;
+    pub const BVH: u8 = 20;
 }
 
-/// Port type tag of `List`; the non-list types are their index in [`SCALAR_PORT_TYPES`].
+/// Port type tag of `List`; the non-list types are their index in [`SCALAR_PORT_TYPES`], plus
+/// one from `List`'s index on (types added after `List` keep the tags of their values).
 const LIST_TYPE_TAG: u8 = 19;
+
+/// The element-type tag of the non-list type at `index` of [`SCALAR_PORT_TYPES`].
+fn scalar_type_tag(index: usize) -> u8 {
+    let tag = index as u8;
+    if tag >= LIST_TYPE_TAG { tag + 1 } else { tag }
+}
+
+/// The index in [`SCALAR_PORT_TYPES`] of the element-type tag `tag` (not `List`'s).
+fn scalar_type_index(tag: u8) -> usize {
+    usize::from(if tag > LIST_TYPE_TAG { tag - 1 } else { tag })
+}
 
 /// Encoded sizes of fixed-size items, used to bound lengths before allocating.
 mod size {
@@ -274,7 +289,7 @@ impl Encoder {
                     .iter()
                     .position(|s| s == other)
                     .unwrap_or_default();
-                self.u8(index as u8);
+                self.u8(scalar_type_tag(index));
             }
         }
     }
@@ -440,6 +455,21 @@ impl Encoder {
             Value::Mesh(m) => {
                 self.u8(tag::MESH);
                 self.mesh(m);
+            }
+            Value::Bvh(b) => {
+                self.u8(tag::BVH);
+                self.len(b.nodes.len());
+                for n in &b.nodes {
+                    self.f32s(&n.min);
+                    self.u32(n.offset);
+                    self.f32s(&n.max);
+                    self.u32(n.count);
+                }
+                self.len(b.primitives.len());
+                self.u32s(&b.primitives);
+                self.len(b.corners.len());
+                self.f32s(b.corners.as_flattened().as_flattened());
+                self.mesh(&b.mesh);
             }
             Value::Scene(s) => {
                 self.u8(tag::SCENE);
@@ -779,7 +809,7 @@ impl<'a> Decoder<'a> {
             return Ok(self.port_type(depth + 1)?.list_of());
         }
         SCALAR_PORT_TYPES
-            .get(usize::from(t))
+            .get(scalar_type_index(t))
             .cloned()
             .ok_or(CodecError::UnknownTag {
                 offset: at,
@@ -961,6 +991,27 @@ impl<'a> Decoder<'a> {
             }
             tag::RECONSTRUCTION => Value::Reconstruction(Arc::new(self.reconstruction()?)),
             tag::MESH => Value::Mesh(Arc::new(self.mesh()?)),
+            tag::BVH => {
+                let nodes = self.counted("bvh nodes", |b: &[u8; 32]| BvhNode {
+                    min: std::array::from_fn(|i| f32::from_bits(u32_at(b, 4 * i))),
+                    offset: u32_at(b, 12),
+                    max: std::array::from_fn(|i| f32::from_bits(u32_at(b, 16 + 4 * i))),
+                    count: u32_at(b, 28),
+                })?;
+                let primitives = self.counted("bvh primitives", |b: &[u8; 4]| u32_at(b, 0))?;
+                let corners = self.counted("bvh corners", |b: &[u8; 36]| {
+                    std::array::from_fn(|v| {
+                        std::array::from_fn(|i| f32::from_bits(u32_at(b, 12 * v + 4 * i)))
+                    })
+                })?;
+                let mesh = Arc::new(self.mesh()?);
+                Value::Bvh(Arc::new(Bvh {
+                    nodes,
+                    primitives,
+                    corners,
+                    mesh,
+                }))
+            }
             tag::SCENE => Value::Scene(Arc::new(self.scene()?)),
             tag::ANIMATION => {
                 let duration = self.f64("animation duration")?;
@@ -1301,6 +1352,35 @@ mod tests {
             Value::Text("".into()),
             Value::metrics(metrics),
             Value::list(PortType::Image, vec![]),
+            Value::Bvh(Arc::new(Bvh {
+                nodes: vec![
+                    BvhNode {
+                        min: [0.0, -1.0, 0.5],
+                        offset: 2,
+                        max: [1.0, 1.0, 2.0],
+                        count: 0,
+                    },
+                    BvhNode {
+                        min: [0.0, -1.0, 0.5],
+                        offset: 0,
+                        max: [0.5, 1.0, 2.0],
+                        count: 1,
+                    },
+                    BvhNode {
+                        min: [0.5, -1.0, 0.5],
+                        offset: 1,
+                        max: [1.0, 1.0, f32::INFINITY],
+                        count: 1,
+                    },
+                ],
+                primitives: vec![1, 0],
+                corners: vec![
+                    [[0.0, 0.0, 1.0], [0.5, 1.0, 2.0], [0.0, -1.0, 0.5]],
+                    [[1.0, 0.0, 1.0], [0.5, 1.0, 2.0], [0.5, -1.0, -0.0]],
+                ],
+                mesh: Arc::new(mesh()),
+            })),
+            Value::list(PortType::Bvh, vec![Value::Bvh(Arc::new(Bvh::default()))]),
             Value::list(
                 PortType::Scalar.list_of(),
                 vec![
@@ -1340,7 +1420,7 @@ mod tests {
             .collect();
         tags.sort();
         tags.dedup();
-        assert_eq!(tags, (0..=19).collect::<Vec<u8>>());
+        assert_eq!(tags, (0..=20).collect::<Vec<u8>>());
         assert_eq!(decode_values(&encode_values(&[])).unwrap(), vec![]);
     }
 

@@ -21,6 +21,7 @@
 //! | Tracks | `NAME.json` | `{"tracks":[[{"image","keypoint"}…]…]}` |
 //! | Animation | `NAME.json` | `{"duration","channels":[{"target","times","width","values"}…]}` |
 //! | Scene | `NAME.json` | full scene, see below |
+//! | Bvh | `NAME.json` | its shape: `{"triangles","nodes","leaves","max_depth","max_leaf_size","min":[x,y,z],"max":[x,y,z]}` (the root box; `null` corners when empty) |
 //! | PointCloud | `NAME.ply` | binary little-endian PLY: `float x y z`, then `uchar red green blue` if colored, then `float nx ny nz` if it has normals |
 //! | Mesh | `NAME.obj` and `NAME.ply` | see below |
 //! | Reconstruction | folder `NAME/` | COLMAP text model: `cameras.txt`, `images.txt`, `points3D.txt` |
@@ -67,8 +68,8 @@ use serde::{Deserialize, Serialize};
 use crate::image_io::{self, ImageIoError, write_atomic_with};
 use crate::summary::fmt_sig6;
 use crate::value::{
-    Camera, Channels, Depth, Descriptors, Distortion, Image, Light, Matrix, Mesh, PointCloud, Pose,
-    Reconstruction, Scene, Value, ValueList,
+    Bvh, Camera, Channels, Depth, Descriptors, Distortion, Image, Light, Matrix, Mesh, PointCloud,
+    Pose, Reconstruction, Scene, Value, ValueList,
 };
 
 /// Errors writing outputs.
@@ -145,6 +146,7 @@ pub fn emit_value(dir: &Path, name: &str, value: &Value) -> Result<Vec<PathBuf>,
             one(path.clone(), write_point_cloud_ply(&path, name, p))
         }
         Value::Mesh(m) => emit_mesh(dir, name, m),
+        Value::Bvh(b) => one(json_path(), write_json(&json_path(), &BvhJson::from(&**b))),
         Value::Reconstruction(r) => emit_reconstruction(&dir.join(name), name, r),
         Value::List(list) => emit_list(&dir.join(name), list),
     }
@@ -191,6 +193,33 @@ fn invalid(name: &str, reason: impl Into<String>) -> EmitError {
 }
 
 /// Compact JSON plus a trailing newline, streamed into an atomic write.
+/// The shape of a BVH (the tree itself is not written).
+#[derive(Serialize)]
+struct BvhJson {
+    triangles: usize,
+    nodes: usize,
+    leaves: usize,
+    max_depth: usize,
+    max_leaf_size: usize,
+    min: Option<[f32; 3]>,
+    max: Option<[f32; 3]>,
+}
+
+impl From<&Bvh> for BvhJson {
+    fn from(b: &Bvh) -> BvhJson {
+        let stats = b.stats();
+        BvhJson {
+            triangles: b.primitives.len(),
+            nodes: stats.nodes,
+            leaves: stats.leaves,
+            max_depth: stats.max_depth,
+            max_leaf_size: stats.max_leaf_size,
+            min: b.nodes.first().map(|n| n.min),
+            max: b.nodes.first().map(|n| n.max),
+        }
+    }
+}
+
 fn write_json<T: Serialize + ?Sized>(path: &Path, value: &T) -> Result<(), EmitError> {
     write_atomic_with(path, |w| {
         serde_json::to_writer(&mut *w, value).map_err(io::Error::from)?;

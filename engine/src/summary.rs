@@ -330,6 +330,18 @@ fn write_value(out: &mut String, value: &Value, indent: usize) {
         Value::Tracks(t) => out.push_str(&tracks_summary(t)),
         Value::Reconstruction(r) => out.push_str(&reconstruction_summary(r)),
         Value::Mesh(m) => out.push_str(&format!("Mesh({})", mesh_fields(m))),
+        Value::Bvh(b) => {
+            let stats = b.stats();
+            let _ = write!(
+                out,
+                "Bvh(triangles: {}, nodes: {}, leaves: {}, max_depth: {}, max_leaf_size: {})",
+                b.primitives.len(),
+                stats.nodes,
+                stats.leaves,
+                stats.max_depth,
+                stats.max_leaf_size
+            );
+        }
         Value::Scene(s) => out.push_str(&scene_summary(s)),
         Value::Animation(a) => out.push_str(&animation_summary(a)),
         Value::Scalar(x) => {

@@ -46,12 +46,14 @@ pub enum PortType {
     Text,
     /// Named numbers (name → value).
     Metrics,
+    /// A bounding-volume hierarchy over a triangle mesh (for ray casting).
+    Bvh,
     /// A list of values of one type.
     List(Box<PortType>),
 }
 
 /// Every non-list type, in the order they are documented.
-pub const SCALAR_PORT_TYPES: [PortType; 19] = [
+pub const SCALAR_PORT_TYPES: [PortType; 20] = [
     PortType::Image,
     PortType::Keypoints,
     PortType::Descriptors,
@@ -71,6 +73,7 @@ pub const SCALAR_PORT_TYPES: [PortType; 19] = [
     PortType::Bool,
     PortType::Text,
     PortType::Metrics,
+    PortType::Bvh,
 ];
 
 impl PortType {
@@ -109,6 +112,7 @@ impl PortType {
             PortType::Bool => "Bool",
             PortType::Text => "Text",
             PortType::Metrics => "Metrics",
+            PortType::Bvh => "Bvh",
             PortType::List(inner) => inner.base_name(),
         }
     }

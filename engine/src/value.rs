@@ -777,6 +777,90 @@ pub struct Mesh {
     pub colors: Option<Vec<[f32; 3]>>,
 }
 
+/// One node of a [`Bvh`]: an axis-aligned box and either two children or a run of triangles
+/// (32 bytes).
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct BvhNode {
+    /// Box corner with the smallest coordinates.
+    pub min: [f32; 3],
+    /// Inner node: index of the second child (the first child is the next node). Leaf: index
+    /// of its first triangle in [`Bvh::primitives`].
+    pub offset: u32,
+    /// Box corner with the largest coordinates.
+    pub max: [f32; 3],
+    /// Triangles of a leaf; 0 for an inner node.
+    pub count: u32,
+}
+
+impl BvhNode {
+    /// Whether the node is a leaf.
+    pub fn is_leaf(&self) -> bool {
+        self.count > 0
+    }
+}
+
+/// A bounding-volume hierarchy over a mesh's triangles: nodes in depth-first order, the root
+/// first (an empty mesh has no nodes).
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct Bvh {
+    /// Nodes, depth-first, root at 0.
+    pub nodes: Vec<BvhNode>,
+    /// Triangle indices into `mesh.triangles`, in leaf order.
+    pub primitives: Vec<u32>,
+    /// The three corners of `primitives[i]`, in leaf order (intersection reads these without
+    /// indirection).
+    pub corners: Vec<[[f32; 3]; 3]>,
+    /// The mesh it was built over.
+    pub mesh: Arc<Mesh>,
+}
+
+/// Shape of a [`Bvh`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct BvhStats {
+    /// Nodes.
+    pub nodes: usize,
+    /// Leaves.
+    pub leaves: usize,
+    /// Longest root-to-leaf path in edges (0 for a lone leaf).
+    pub max_depth: usize,
+    /// Most triangles in one leaf.
+    pub max_leaf_size: usize,
+}
+
+impl Bvh {
+    /// Node, leaf and depth counts (iterative walk; a malformed tree stops at the first bad
+    /// index instead of panicking).
+    pub fn stats(&self) -> BvhStats {
+        let mut stats = BvhStats {
+            nodes: self.nodes.len(),
+            ..BvhStats::default()
+        };
+        if self.nodes.is_empty() {
+            return stats;
+        }
+        let mut stack = vec![(0usize, 0usize)];
+        let mut visited = 0usize;
+        while let Some((i, depth)) = stack.pop() {
+            let Some(node) = self.nodes.get(i) else {
+                break;
+            };
+            visited += 1;
+            if visited > self.nodes.len() {
+                break;
+            }
+            stats.max_depth = stats.max_depth.max(depth);
+            if node.is_leaf() {
+                stats.leaves += 1;
+                stats.max_leaf_size = stats.max_leaf_size.max(node.count as usize);
+            } else {
+                stack.push((node.offset as usize, depth + 1));
+                stack.push((i + 1, depth + 1));
+            }
+        }
+        stats
+    }
+}
+
 /// A mesh instance placed in a scene.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SceneObject {
@@ -895,6 +979,8 @@ pub enum Value {
     Text(Arc<str>),
     /// See [`Metrics`].
     Metrics(Arc<Metrics>),
+    /// See [`Bvh`].
+    Bvh(Arc<Bvh>),
     /// See [`ValueList`].
     List(Arc<ValueList>),
 }
@@ -930,6 +1016,7 @@ impl Value {
             Value::Tracks(_) => PortType::Tracks,
             Value::Reconstruction(_) => PortType::Reconstruction,
             Value::Mesh(_) => PortType::Mesh,
+            Value::Bvh(_) => PortType::Bvh,
             Value::Scene(_) => PortType::Scene,
             Value::Animation(_) => PortType::Animation,
             Value::Scalar(_) => PortType::Scalar,
@@ -973,6 +1060,12 @@ impl Value {
                         .sum::<usize>()
             }
             Value::Mesh(m) => mesh_bytes(m),
+            Value::Bvh(b) => {
+                b.nodes.len() * 32
+                    + b.primitives.len() * 4
+                    + b.corners.len() * 36
+                    + mesh_bytes(&b.mesh)
+            }
             Value::Scene(s) => s.objects.iter().map(|o| mesh_bytes(&o.mesh)).sum(),
             Value::Animation(a) => a
                 .channels

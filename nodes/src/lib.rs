@@ -13,6 +13,7 @@ pub mod io;
 /// The `match` family (descriptor and patch matching); `match` is a keyword, hence the name.
 pub mod matching;
 pub mod optimize;
+pub mod render;
 pub mod segment;
 pub mod video;
 
@@ -109,6 +110,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<io::read_camera::ReadCamera>()?;
     registry.register::<io::read_bal::ReadBal>()?;
     registry.register::<optimize::affine_init::AffineInit>()?;
+    registry.register::<render::raycast::BuildBvh>()?;
+    registry.register::<render::raycast::Raycast>()?;
     registry.register::<optimize::bundle_adjust::BundleAdjust>()?;
     registry.register::<optimize::synthetic::SyntheticScene>()?;
     registry.register::<geometry::two_view::FindHomography>()?;

@@ -1,0 +1,6 @@
+//! Rendering: acceleration structures and ray casting over triangle meshes, and the procedural
+//! meshes used as fixtures.
+
+pub mod bvh;
+pub mod primitives;
+pub mod raycast;
