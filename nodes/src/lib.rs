@@ -108,6 +108,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<io::read_correspondences::ReadCorrespondences>()?;
     registry.register::<io::read_camera::ReadCamera>()?;
     registry.register::<io::read_bal::ReadBal>()?;
+    registry.register::<io::read_mesh::ReadMesh>()?;
     registry.register::<optimize::affine_init::AffineInit>()?;
     registry.register::<optimize::bundle_adjust::BundleAdjust>()?;
     registry.register::<optimize::synthetic::SyntheticScene>()?;
