@@ -109,6 +109,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<io::read_correspondences::ReadCorrespondences>()?;
     registry.register::<io::read_camera::ReadCamera>()?;
     registry.register::<io::read_bal::ReadBal>()?;
+    registry.register::<io::read_mesh::ReadMesh>()?;
     registry.register::<optimize::affine_init::AffineInit>()?;
     registry.register::<render::raycast::BuildBvh>()?;
     registry.register::<render::raycast::Raycast>()?;
