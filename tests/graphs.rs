@@ -19,6 +19,7 @@ const SNAPSHOTTED: &[&str] = &[
     "lines.ron",
     "ransac_fundamental.ron",
     "ransac_homography.ron",
+    "raycast.ron",
     "segment.ron",
     "two_branches.ron",
     "two_view.ron",
@@ -71,6 +72,11 @@ fn filters() {
 #[test]
 fn homography() {
     check_graph("homography.ron");
+}
+
+#[test]
+fn raycast() {
+    check_graph("raycast.ron");
 }
 
 #[test]

@@ -1356,7 +1356,7 @@ mod tests {
                 nodes: vec![
                     BvhNode {
                         min: [0.0, -1.0, 0.5],
-                        offset: 2,
+                        offset: 1,
                         max: [1.0, 1.0, 2.0],
                         count: 0,
                     },

@@ -783,8 +783,8 @@ pub struct Mesh {
 pub struct BvhNode {
     /// Box corner with the smallest coordinates.
     pub min: [f32; 3],
-    /// Inner node: index of the second child (the first child is the next node). Leaf: index
-    /// of its first triangle in [`Bvh::primitives`].
+    /// Inner node: index of its first child; the second child is the node after it (siblings
+    /// are adjacent). Leaf: index of its first triangle in [`Bvh::primitives`].
     pub offset: u32,
     /// Box corner with the largest coordinates.
     pub max: [f32; 3],
@@ -799,11 +799,11 @@ impl BvhNode {
     }
 }
 
-/// A bounding-volume hierarchy over a mesh's triangles: nodes in depth-first order, the root
-/// first (an empty mesh has no nodes).
+/// A bounding-volume hierarchy over a mesh's triangles: the root at 0, then the children of
+/// each inner node as an adjacent pair (an empty mesh has no nodes).
 #[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub struct Bvh {
-    /// Nodes, depth-first, root at 0.
+    /// Nodes, root at 0, siblings adjacent.
     pub nodes: Vec<BvhNode>,
     /// Triangle indices into `mesh.triangles`, in leaf order.
     pub primitives: Vec<u32>,
@@ -853,8 +853,8 @@ impl Bvh {
                 stats.leaves += 1;
                 stats.max_leaf_size = stats.max_leaf_size.max(node.count as usize);
             } else {
+                stack.push((node.offset as usize + 1, depth + 1));
                 stack.push((node.offset as usize, depth + 1));
-                stack.push((i + 1, depth + 1));
             }
         }
         stats

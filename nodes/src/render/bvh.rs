@@ -177,7 +177,7 @@ pub fn build_bvh(mesh: Arc<Mesh>, options: &BvhOptions) -> Result<Bvh, BvhError>
     let nodes = if prims.is_empty() {
         Vec::new()
     } else {
-        build_node(&prims, &mut ids, 0, 0, options)
+        siblings_adjacent(&build_node(&prims, &mut ids, 0, 0, options))
     };
     let corners: Vec<[[f32; 3]; 3]> = ids
         .iter()
@@ -269,6 +269,32 @@ fn build_node(
         c
     }));
     nodes
+}
+
+/// Reorders a depth-first tree (first child next to its parent, `offset` = second child) so
+/// that every node's two children are adjacent (`offset` = first child, `offset + 1` = second):
+/// a traversal step then reads both child boxes from one 64-byte pair. Pairs are laid out in
+/// depth-first order of their parents, so a subtree stays mostly contiguous.
+fn siblings_adjacent(depth_first: &[BvhNode]) -> Vec<BvhNode> {
+    let mut out = Vec::with_capacity(depth_first.len());
+    out.push(depth_first[0]);
+    // (old index, new index) of inner nodes whose children still need slots.
+    let mut stack = vec![(0usize, 0usize)];
+    while let Some((old, new)) = stack.pop() {
+        let node = depth_first[old];
+        if node.is_leaf() {
+            continue;
+        }
+        let (a, b) = (old + 1, node.offset as usize);
+        let first = out.len();
+        out.push(depth_first[a]);
+        out.push(depth_first[b]);
+        out[new].offset = first as u32;
+        // Second child pushed first so the first child's subtree is laid out next.
+        stack.push((b, first + 1));
+        stack.push((a, first));
+    }
+    out
 }
 
 /// The bin of centroid coordinate `c` along an axis binned from `lo` with `scale` bins per
@@ -498,8 +524,11 @@ fn slab(node: &BvhNode, origin: [f32; 3], inv: [f32; 3], t_min: f32, t_max: f32)
     for k in 0..3 {
         let t0 = (node.min[k] - origin[k]) * inv[k];
         let t1 = (node.max[k] - origin[k]) * inv[k];
-        near = near.max(t0.min(t1));
-        far = far.min(t0.max(t1));
+        // No NaN can arise (finite boxes, finite `inv`), so plain comparisons (one minss /
+        // maxss each) replace f32::min/max's NaN handling.
+        let (lo, hi) = if t0 < t1 { (t0, t1) } else { (t1, t0) };
+        near = if lo > near { lo } else { near };
+        far = if hi < far { hi } else { far };
     }
     if near <= far { near } else { f32::INFINITY }
 }
@@ -563,8 +592,8 @@ fn traverse<const ANY: bool>(bvh: &Bvh, ray: &Ray) -> Option<Hit> {
                 }
             }
         } else {
-            let a = current + 1;
-            let b = node.offset as usize;
+            let a = node.offset as usize;
+            let b = a + 1;
             let ta = slab(&nodes[a], o, inv, ray.t_min, t_best);
             let tb = slab(&nodes[b], o, inv, ray.t_min, t_best);
             let (near, t_near, far, t_far) = if ta <= tb {
@@ -639,7 +668,7 @@ mod tests {
                     }
                 }
             } else {
-                for c in [i + 1, node.offset as usize] {
+                for c in [node.offset as usize, node.offset as usize + 1] {
                     let child = bvh.nodes[c];
                     assert!(contains(&node, child.min) && contains(&node, child.max));
                     stack.push(c);

@@ -46,7 +46,7 @@ cheaper. Nodes whose centroids all coincide are split by halves. Large subtrees 
 parallel; the tree is the same for any thread count. Non-finite vertices and out-of-range
 indices are errors; degenerate triangles are kept (rays never hit them).
 
-Outputs `bvh` (nodes depth-first, triangles in leaf order with their corners, and the mesh).
+Outputs `bvh` (the root, then sibling pairs; triangles in leaf order with their corners; the mesh).
 `--emit` writes its shape: triangles, nodes, leaves, depth, largest leaf, root box.
 
 Reference: Wald, "On fast construction of SAH-based bounding volume hierarchies" (IEEE RT
@@ -226,29 +226,48 @@ impl LookAtCamera {
     }
 }
 
-/// Rows per parallel work item.
-const ROWS_PER_CHUNK: usize = 4;
+/// Side of the square pixel tiles traced as one work item (coherent rays share cache lines of
+/// the hierarchy).
+const TILE: usize = 16;
 
 /// Distance along each pixel's unit ray to the nearest hit (`+∞` on a miss), row-major, and the
 /// number of hits.
 pub fn raycast_depth(bvh: &Bvh, camera: &LookAtCamera) -> (Vec<f32>, usize) {
-    let w = camera.width;
-    let mut depth = vec![f32::INFINITY; w * camera.height];
-    let hits: usize = depth
-        .par_chunks_mut(w * ROWS_PER_CHUNK)
-        .enumerate()
-        .map(|(chunk, rows)| {
+    let (w, h) = (camera.width, camera.height);
+    let tiles_x = w.div_ceil(TILE);
+    let tiles = tiles_x * h.div_ceil(TILE);
+    let traced: Vec<(Vec<f32>, usize)> = (0..tiles)
+        .into_par_iter()
+        .map(|tile| {
+            let (x0, y0) = ((tile % tiles_x) * TILE, (tile / tiles_x) * TILE);
+            let (x1, y1) = ((x0 + TILE).min(w), (y0 + TILE).min(h));
+            let mut depth = Vec::with_capacity((x1 - x0) * (y1 - y0));
             let mut hits = 0;
-            for (i, d) in rows.iter_mut().enumerate() {
-                let (x, y) = (i % w, chunk * ROWS_PER_CHUNK + i / w);
-                if let Some(hit) = intersect(bvh, &camera.ray(x, y)) {
-                    *d = hit.t;
-                    hits += 1;
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    match intersect(bvh, &camera.ray(x, y)) {
+                        Some(hit) => {
+                            depth.push(hit.t);
+                            hits += 1;
+                        }
+                        None => depth.push(f32::INFINITY),
+                    }
                 }
             }
-            hits
+            (depth, hits)
         })
-        .sum();
+        .collect();
+    let mut depth = vec![f32::INFINITY; w * h];
+    let mut hits = 0;
+    for (tile, (values, n)) in traced.iter().enumerate() {
+        let (x0, y0) = ((tile % tiles_x) * TILE, (tile / tiles_x) * TILE);
+        let tw = (x0 + TILE).min(w) - x0;
+        for (row, chunk) in values.chunks(tw).enumerate() {
+            let start = (y0 + row) * w + x0;
+            depth[start..start + tw].copy_from_slice(chunk);
+        }
+        hits += n;
+    }
     (depth, hits)
 }
 
