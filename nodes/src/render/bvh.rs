@@ -87,9 +87,9 @@ impl Aabb {
     };
 
     fn grow(&mut self, p: [f32; 3]) {
-        for k in 0..3 {
-            self.min[k] = self.min[k].min(p[k]);
-            self.max[k] = self.max[k].max(p[k]);
+        for (k, v) in p.into_iter().enumerate() {
+            self.min[k] = self.min[k].min(v);
+            self.max[k] = self.max[k].max(v);
         }
     }
 
@@ -322,7 +322,7 @@ fn best_split(
     for axis in 0..3 {
         let lo = centroid_bounds.min[axis];
         let extent = centroid_bounds.max[axis] - lo;
-        if !(extent > 0.0) {
+        if extent.is_nan() || extent <= 0.0 {
             continue;
         }
         let scale = bins as f32 / extent;
@@ -545,13 +545,11 @@ pub fn occluded(bvh: &Bvh, ray: &Ray) -> bool {
 
 fn traverse<const ANY: bool>(bvh: &Bvh, ray: &Ray) -> Option<Hit> {
     let nodes = &bvh.nodes;
-    if nodes.is_empty() || !(ray.t_min < ray.t_max) {
+    if nodes.is_empty() || ray.t_min.is_nan() || ray.t_max.is_nan() || ray.t_min >= ray.t_max {
         return None;
     }
     let o = ray.origin;
-    let Some(sheared) = ShearedRay::new(o, ray.direction) else {
-        return None;
-    };
+    let sheared = ShearedRay::new(o, ray.direction)?;
     // A zero direction component would make the slab test compute 0 · ∞ = NaN for a ray lying
     // in a box face's plane; a tiny stand-in component tilts the ray into one side of the
     // plane instead (the triangle test keeps the exact direction).
