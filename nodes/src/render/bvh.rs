@@ -34,6 +34,28 @@ pub struct BvhOptions {
     pub traversal_cost: f32,
 }
 
+impl BvhOptions {
+    /// Why the options are out of range, if they are.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(2..=256).contains(&self.bins) {
+            return Err(format!("`bins` must be 2..=256, got {}", self.bins));
+        }
+        if !(1..=64).contains(&self.max_leaf_size) {
+            return Err(format!(
+                "`max_leaf_size` must be 1..=64, got {}",
+                self.max_leaf_size
+            ));
+        }
+        if !(self.traversal_cost.is_finite() && self.traversal_cost > 0.0) {
+            return Err(format!(
+                "`traversal_cost` must be finite and > 0, got {}",
+                self.traversal_cost
+            ));
+        }
+        Ok(())
+    }
+}
+
 impl Default for BvhOptions {
     fn default() -> Self {
         BvhOptions {
@@ -117,24 +139,7 @@ struct PrimBox {
 /// Validates the mesh and builds the hierarchy over all its triangles (degenerate ones
 /// included: they are simply never hit).
 pub fn build_bvh(mesh: Arc<Mesh>, options: &BvhOptions) -> Result<Bvh, BvhError> {
-    if !(2..=256).contains(&options.bins) {
-        return Err(BvhError::Options(format!(
-            "`bins` must be 2..=256, got {}",
-            options.bins
-        )));
-    }
-    if !(1..=64).contains(&options.max_leaf_size) {
-        return Err(BvhError::Options(format!(
-            "`max_leaf_size` must be 1..=64, got {}",
-            options.max_leaf_size
-        )));
-    }
-    if !(options.traversal_cost.is_finite() && options.traversal_cost > 0.0) {
-        return Err(BvhError::Options(format!(
-            "`traversal_cost` must be finite and > 0, got {}",
-            options.traversal_cost
-        )));
-    }
+    options.validate().map_err(BvhError::Options)?;
     if mesh.triangles.len() > u32::MAX as usize / 2 {
         return Err(BvhError::TooManyTriangles(mesh.triangles.len()));
     }

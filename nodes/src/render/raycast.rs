@@ -74,21 +74,7 @@ Example:
             max_leaf_size: p.max_leaf_size as usize,
             traversal_cost: p.traversal_cost as f32,
         };
-        if !(2..=256).contains(&options.bins) {
-            return Err(format!("`bins` must be 2..=256, got {}", p.bins));
-        }
-        if !(1..=64).contains(&options.max_leaf_size) {
-            return Err(format!(
-                "`max_leaf_size` must be 1..=64, got {}",
-                p.max_leaf_size
-            ));
-        }
-        if !(p.traversal_cost.is_finite() && p.traversal_cost > 0.0) {
-            return Err(format!(
-                "`traversal_cost` must be finite and > 0, got {}",
-                p.traversal_cost
-            ));
-        }
+        options.validate()?;
         Ok(BuildBvh { options })
     }
 }
