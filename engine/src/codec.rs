@@ -24,7 +24,7 @@
 //! | 9 | Tracks | `u64 tracks`, each `u64 n`, n × (`u32 image, u32 keypoint`) |
 //! | 10 | Reconstruction | cameras (`u64 n`, n × (`u32 id`, camera)), images (`u64 n`, n × (`u32 id, u32 camera_id`, string name, pose, `u64 n`, n × (`f64 x, f64 y, u8 has_point, u64 point_id`))), points (`u64 n`, n × (`u64 id, f64 × 3, u8 × 3, f64 error, u64 n`, n × `u32 image, u32 index`)) |
 //! | 11 | Mesh | mesh: positions (`u64 n`, `f32 × 3` each), triangles (`u64 n`, `u32 × 3` each), `u8 flags (1 normals, 2 uvs, 4 colors)`, then each present attribute as `u64 n` + items |
-//! | 12 | Scene | objects (`u64 n`, n × (string name, mesh, pose, `f32 × 3` albedo)), lights (`u64 n`, n × (`u8 kind (0 point, 1 directional), f64 × 3, f32 × 3`)), cameras (`u64 n`, n × (camera, pose)) |
+//! | 12 | Scene | materials (`u64 n`, n × (string name, `f32 × 3` albedo, texture albedo, texture normal, `f32` roughness, texture, `f32` metalness, texture, `f32 × 3` emission, texture, `f32 × 5` specular shininess transmission ior opacity, `u8` shading)), objects (`u64 n`, n × (string name, shape, pose, `f64` scale, `u32` material)), lights (`u64 n`, n × (`u8 kind`, then 0 point `f64 × 3, f32 × 3`; 1 directional `f64 × 3, f32 × 3`; 2 area `f64 × 9, f32 × 3`; 3 environment `f32 × 3`, texture)), cameras (`u64 n`, n × (camera, pose, `f64` aperture radius, `f64` focus distance)); a texture is `u8 present`, then image (as tag 0 without the tag), `u8 wrap, u8 filter, f32 × 4 border, u32 max anisotropy, f32 × 2 uv scale`; a shape is `u8 kind`, then 0 mesh; 1 sphere `f64 × 4`; 2 plane `f64 × 7`; 3 quadric `f64 × 16` |
 //! | 13 | Animation | `f64 duration, u64 n`, n × (string target, `u64 n` times f64, `u64 width`, `u64 n` values f64) |
 //! | 14 | Scalar | `f64` |
 //! | 15 | Integer | `i64` |
@@ -56,15 +56,16 @@ use std::sync::Arc;
 use crate::types::{PortType, SCALAR_PORT_TYPES};
 use crate::value::{
     Animation, AnimationChannel, Bvh, BvhNode, Camera, CameraModel, Channels, Depth, Descriptors,
-    Image, Keypoint, Light, Match, Matrix, Mesh, Metrics, PixelData, PointCloud, Pose, ReconImage,
-    ReconPoint, Reconstruction, Scene, SceneObject, TrackElement, Tracks, Value, ValueList,
+    Image, Keypoint, Light, Match, Material, Matrix, Mesh, Metrics, PixelData, PointCloud, Pose,
+    ReconImage, ReconPoint, Reconstruction, Scene, SceneCamera, SceneObject, Shading, Shape,
+    Texture, TextureFilter, TextureWrap, TrackElement, Tracks, Value, ValueList,
 };
 
 /// First four bytes of every encoding.
 pub const MAGIC: [u8; 4] = *b"OCVL";
 
 /// The format version written, and the only one read.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 
 /// Most lists nested inside one another (and so most `List<…>` levels in an element type) that
 /// decode.
@@ -192,9 +193,10 @@ mod size {
     pub const MIN_RECON_IMAGE: usize = 4 + 4 + 8 + POSE + 8;
     pub const MIN_RECON_POINT: usize = 8 + 24 + 3 + 8 + 8;
     pub const MIN_MESH: usize = 8 + 8 + 1;
-    pub const MIN_SCENE_OBJECT: usize = 8 + MIN_MESH + POSE + 12;
-    pub const LIGHT: usize = 1 + 24 + 12;
-    pub const MIN_SCENE_CAMERA: usize = MIN_CAMERA + POSE;
+    pub const MIN_MATERIAL: usize = 8 + 12 + 5 + 4 + 4 + 12 + 20 + 1;
+    pub const MIN_SCENE_OBJECT: usize = 8 + 1 + MIN_MESH + POSE + 8 + 4;
+    pub const MIN_LIGHT: usize = 1 + 12 + 1;
+    pub const MIN_SCENE_CAMERA: usize = MIN_CAMERA + POSE + 16;
     pub const MIN_CHANNEL: usize = 8 + 8 + 8 + 8;
     pub const MIN_METRIC: usize = 8 + 8;
     pub const MIN_TRACK: usize = 8;
@@ -316,27 +318,45 @@ impl Encoder {
         }
     }
 
+    fn image(&mut self, image: &Image) {
+        self.len(image.width());
+        self.len(image.height());
+        self.u8(match image.channels() {
+            Channels::Gray => 0,
+            Channels::Rgb => 1,
+            Channels::Rgba => 2,
+        });
+        self.u8(match image.depth() {
+            Depth::U8 => 0,
+            Depth::U16 => 1,
+            Depth::F32 => 2,
+        });
+        match image.data() {
+            PixelData::U8(v) => self.out.extend_from_slice(v),
+            PixelData::U16(v) => put_bulk(&mut self.out, v, u16::to_le_bytes),
+            PixelData::F32(v) => self.f32s(v),
+        }
+    }
+
+    fn texture(&mut self, t: Option<&Texture>) {
+        let Some(t) = t else {
+            self.u8(0);
+            return;
+        };
+        self.u8(1);
+        self.image(&t.image);
+        self.u8(t.wrap as u8);
+        self.u8(t.filter as u8);
+        self.f32s(&t.border);
+        self.u32(t.max_anisotropy);
+        self.f32s(&t.uv_scale);
+    }
+
     fn value(&mut self, value: &Value) {
         match value {
             Value::Image(image) => {
                 self.u8(tag::IMAGE);
-                self.len(image.width());
-                self.len(image.height());
-                self.u8(match image.channels() {
-                    Channels::Gray => 0,
-                    Channels::Rgb => 1,
-                    Channels::Rgba => 2,
-                });
-                self.u8(match image.depth() {
-                    Depth::U8 => 0,
-                    Depth::U16 => 1,
-                    Depth::F32 => 2,
-                });
-                match image.data() {
-                    PixelData::U8(v) => self.out.extend_from_slice(v),
-                    PixelData::U16(v) => put_bulk(&mut self.out, v, u16::to_le_bytes),
-                    PixelData::F32(v) => self.f32s(v),
-                }
+                self.image(image);
             }
             Value::Keypoints(k) => {
                 self.u8(tag::KEYPOINTS);
@@ -473,33 +493,103 @@ impl Encoder {
             }
             Value::Scene(s) => {
                 self.u8(tag::SCENE);
+                self.len(s.materials.len());
+                for m in &s.materials {
+                    self.str(&m.name);
+                    self.f32s(&m.albedo);
+                    self.texture(m.albedo_texture.as_ref());
+                    self.texture(m.normal_texture.as_ref());
+                    self.f32(m.roughness);
+                    self.texture(m.roughness_texture.as_ref());
+                    self.f32(m.metalness);
+                    self.texture(m.metalness_texture.as_ref());
+                    self.f32s(&m.emission);
+                    self.texture(m.emission_texture.as_ref());
+                    self.f32s(&[m.specular, m.shininess, m.transmission, m.ior, m.opacity]);
+                    self.u8(m.shading as u8);
+                }
                 self.len(s.objects.len());
                 for o in &s.objects {
                     self.str(&o.name);
-                    self.mesh(&o.mesh);
+                    match &o.shape {
+                        Shape::Mesh(m) => {
+                            self.u8(0);
+                            self.mesh(m);
+                        }
+                        Shape::Sphere { center, radius } => {
+                            self.u8(1);
+                            self.f64s(center);
+                            self.f64(*radius);
+                        }
+                        Shape::Plane {
+                            point,
+                            normal,
+                            half_extent,
+                        } => {
+                            self.u8(2);
+                            self.f64s(point);
+                            self.f64s(normal);
+                            self.f64(*half_extent);
+                        }
+                        Shape::Quadric {
+                            coefficients,
+                            min,
+                            max,
+                        } => {
+                            self.u8(3);
+                            self.f64s(coefficients);
+                            self.f64s(min);
+                            self.f64s(max);
+                        }
+                    }
                     self.pose(&o.world_from_object);
-                    self.f32s(&o.albedo);
+                    self.f64(o.scale);
+                    self.u32(o.material);
                 }
                 self.len(s.lights.len());
                 for light in &s.lights {
-                    let (kind, a, b) = match light {
+                    match light {
                         Light::Point {
                             position,
                             intensity,
-                        } => (0, position, intensity),
+                        } => {
+                            self.u8(0);
+                            self.f64s(position);
+                            self.f32s(intensity);
+                        }
                         Light::Directional {
                             direction,
                             irradiance,
-                        } => (1, direction, irradiance),
-                    };
-                    self.u8(kind);
-                    self.f64s(a);
-                    self.f32s(b);
+                        } => {
+                            self.u8(1);
+                            self.f64s(direction);
+                            self.f32s(irradiance);
+                        }
+                        Light::Area {
+                            corner,
+                            edge_u,
+                            edge_v,
+                            radiance,
+                        } => {
+                            self.u8(2);
+                            self.f64s(corner);
+                            self.f64s(edge_u);
+                            self.f64s(edge_v);
+                            self.f32s(radiance);
+                        }
+                        Light::Environment { radiance, map } => {
+                            self.u8(3);
+                            self.f32s(radiance);
+                            self.texture(map.as_ref());
+                        }
+                    }
                 }
                 self.len(s.cameras.len());
-                for (camera, pose) in &s.cameras {
-                    self.camera(camera);
-                    self.pose(pose);
+                for c in &s.cameras {
+                    self.camera(&c.camera);
+                    self.pose(&c.camera_from_world);
+                    self.f64(c.aperture_radius);
+                    self.f64(c.focus_distance);
                 }
             }
             Value::Animation(a) => {
@@ -1144,55 +1234,189 @@ impl<'a> Decoder<'a> {
         })
     }
 
+    fn f32(&mut self, what: &'static str) -> Result<f32, CodecError> {
+        Ok(f32::from_le_bytes(self.array::<4>(what)?))
+    }
+
+    fn f32x3(&mut self, what: &'static str) -> Result<[f32; 3], CodecError> {
+        Ok(f32x3(&self.array::<12>(what)?))
+    }
+
+    fn f64s<const N: usize>(&mut self, what: &'static str) -> Result<[f64; N], CodecError> {
+        let mut out = [0.0; N];
+        for v in &mut out {
+            *v = self.f64(what)?;
+        }
+        Ok(out)
+    }
+
+    fn unknown(&self, offset: usize, what: &'static str, tag: u8) -> CodecError {
+        CodecError::UnknownTag { offset, what, tag }
+    }
+
+    fn texture(&mut self) -> Result<Option<Texture>, CodecError> {
+        if !self.bool_flag("texture present")? {
+            return Ok(None);
+        }
+        let image = Arc::new(self.image()?);
+        let at = self.pos;
+        let wrap = match self.u8("texture wrap")? {
+            0 => TextureWrap::Repeat,
+            1 => TextureWrap::MirroredRepeat,
+            2 => TextureWrap::ClampToEdge,
+            3 => TextureWrap::ClampToBorder,
+            tag => return Err(self.unknown(at, "texture wrap", tag)),
+        };
+        let at = self.pos;
+        let filter = match self.u8("texture filter")? {
+            0 => TextureFilter::Nearest,
+            1 => TextureFilter::Bilinear,
+            2 => TextureFilter::Trilinear,
+            3 => TextureFilter::Anisotropic,
+            tag => return Err(self.unknown(at, "texture filter", tag)),
+        };
+        let border = std::array::from_fn::<_, 4, _>(|_| 0.0);
+        let mut border: [f32; 4] = border;
+        for v in &mut border {
+            *v = self.f32("texture border")?;
+        }
+        let max_anisotropy = self.u32("texture anisotropy")?;
+        let uv_scale = [self.f32("texture uv scale")?, self.f32("texture uv scale")?];
+        Ok(Some(Texture {
+            image,
+            wrap,
+            filter,
+            border,
+            max_anisotropy,
+            uv_scale,
+        }))
+    }
+
     fn scene(&mut self) -> Result<Scene, CodecError> {
+        let n = self.len(size::MIN_MATERIAL, "scene materials")?;
+        let mut materials = Vec::with_capacity(n.min(PREALLOC_MAX));
+        for _ in 0..n {
+            let name = self.string("material name")?;
+            let albedo = self.f32x3("material albedo")?;
+            let albedo_texture = self.texture()?;
+            let normal_texture = self.texture()?;
+            let roughness = self.f32("material roughness")?;
+            let roughness_texture = self.texture()?;
+            let metalness = self.f32("material metalness")?;
+            let metalness_texture = self.texture()?;
+            let emission = self.f32x3("material emission")?;
+            let emission_texture = self.texture()?;
+            let specular = self.f32("material specular")?;
+            let shininess = self.f32("material shininess")?;
+            let transmission = self.f32("material transmission")?;
+            let ior = self.f32("material ior")?;
+            let opacity = self.f32("material opacity")?;
+            let at = self.pos;
+            let shading = match self.u8("material shading")? {
+                0 => Shading::Unlit,
+                1 => Shading::Flat,
+                2 => Shading::Gouraud,
+                3 => Shading::Lambert,
+                4 => Shading::Phong,
+                5 => Shading::BlinnPhong,
+                6 => Shading::Pbr,
+                tag => return Err(self.unknown(at, "material shading", tag)),
+            };
+            materials.push(Material {
+                name,
+                albedo,
+                albedo_texture,
+                normal_texture,
+                roughness,
+                roughness_texture,
+                metalness,
+                metalness_texture,
+                emission,
+                emission_texture,
+                specular,
+                shininess,
+                transmission,
+                ior,
+                opacity,
+                shading,
+            });
+        }
         let n = self.len(size::MIN_SCENE_OBJECT, "scene objects")?;
         let mut objects = Vec::with_capacity(n.min(PREALLOC_MAX));
         for _ in 0..n {
             let name = self.string("object name")?;
-            let mesh = Arc::new(self.mesh()?);
+            let at = self.pos;
+            let shape = match self.u8("shape kind")? {
+                0 => Shape::Mesh(Arc::new(self.mesh()?)),
+                1 => Shape::Sphere {
+                    center: self.f64s("sphere centre")?,
+                    radius: self.f64("sphere radius")?,
+                },
+                2 => Shape::Plane {
+                    point: self.f64s("plane point")?,
+                    normal: self.f64s("plane normal")?,
+                    half_extent: self.f64("plane extent")?,
+                },
+                3 => Shape::Quadric {
+                    coefficients: self.f64s("quadric coefficients")?,
+                    min: self.f64s("quadric box")?,
+                    max: self.f64s("quadric box")?,
+                },
+                tag => return Err(self.unknown(at, "shape kind", tag)),
+            };
             let world_from_object = self.pose()?;
-            let albedo = f32x3(&self.array::<12>("object albedo")?);
+            let scale = self.f64("object scale")?;
+            let material = self.u32("object material")?;
             objects.push(SceneObject {
                 name,
-                mesh,
+                shape,
                 world_from_object,
-                albedo,
+                scale,
+                material,
             });
         }
-        let n = self.len(size::LIGHT, "scene lights")?;
+        let n = self.len(size::MIN_LIGHT, "scene lights")?;
         let mut lights = Vec::with_capacity(n.min(PREALLOC_MAX));
         for _ in 0..n {
             let at = self.pos;
-            let kind = self.u8("light kind")?;
-            let b = self.array::<24>("light vector")?;
-            let a: [f64; 3] = std::array::from_fn(|i| f64_at(&b, 8 * i));
-            let c = f32x3(&self.array::<12>("light power")?);
-            lights.push(match kind {
+            lights.push(match self.u8("light kind")? {
                 0 => Light::Point {
-                    position: a,
-                    intensity: c,
+                    position: self.f64s("light position")?,
+                    intensity: self.f32x3("light intensity")?,
                 },
                 1 => Light::Directional {
-                    direction: a,
-                    irradiance: c,
+                    direction: self.f64s("light direction")?,
+                    irradiance: self.f32x3("light irradiance")?,
                 },
-                tag => {
-                    return Err(CodecError::UnknownTag {
-                        offset: at,
-                        what: "light kind",
-                        tag,
-                    });
-                }
+                2 => Light::Area {
+                    corner: self.f64s("light corner")?,
+                    edge_u: self.f64s("light edge")?,
+                    edge_v: self.f64s("light edge")?,
+                    radiance: self.f32x3("light radiance")?,
+                },
+                3 => Light::Environment {
+                    radiance: self.f32x3("light radiance")?,
+                    map: self.texture()?,
+                },
+                tag => return Err(self.unknown(at, "light kind", tag)),
             });
         }
         let n = self.len(size::MIN_SCENE_CAMERA, "scene cameras")?;
         let mut cameras = Vec::with_capacity(n.min(PREALLOC_MAX));
         for _ in 0..n {
             let camera = self.camera()?;
-            let pose = self.pose()?;
-            cameras.push((camera, pose));
+            let camera_from_world = self.pose()?;
+            let aperture_radius = self.f64("camera aperture")?;
+            let focus_distance = self.f64("camera focus distance")?;
+            cameras.push(SceneCamera {
+                camera,
+                camera_from_world,
+                aperture_radius,
+                focus_distance,
+            });
         }
         Ok(Scene {
+            materials,
             objects,
             lights,
             cameras,
@@ -1317,12 +1541,72 @@ mod tests {
             Value::Mesh(Arc::new(mesh())),
             Value::Mesh(Arc::new(Mesh::default())),
             Value::Scene(Arc::new(Scene {
-                objects: vec![SceneObject {
-                    name: "tri".into(),
-                    mesh: Arc::new(mesh()),
-                    world_from_object: Pose::IDENTITY,
-                    albedo: [0.1, 0.2, 0.3],
-                }],
+                materials: vec![
+                    Material::default(),
+                    Material {
+                        name: "checker".into(),
+                        albedo_texture: Some(Texture {
+                            image: Arc::new(
+                                Image::new(
+                                    2,
+                                    1,
+                                    Channels::Rgb,
+                                    PixelData::U8(vec![1, 2, 3, 4, 5, 6]),
+                                )
+                                .expect("image"),
+                            ),
+                            wrap: TextureWrap::MirroredRepeat,
+                            filter: TextureFilter::Anisotropic,
+                            border: [0.1, 0.2, 0.3, 0.4],
+                            max_anisotropy: 8,
+                            uv_scale: [2.0, 3.0],
+                        }),
+                        shading: Shading::Pbr,
+                        ior: 1.33,
+                        ..Material::default()
+                    },
+                ],
+                objects: vec![
+                    SceneObject {
+                        name: "tri".into(),
+                        shape: Shape::Mesh(Arc::new(mesh())),
+                        world_from_object: Pose::IDENTITY,
+                        scale: 2.0,
+                        material: 1,
+                    },
+                    SceneObject {
+                        name: "ball".into(),
+                        shape: Shape::Sphere {
+                            center: [1.0, 2.0, 3.0],
+                            radius: 0.5,
+                        },
+                        world_from_object: Pose::IDENTITY,
+                        scale: 1.0,
+                        material: 0,
+                    },
+                    SceneObject {
+                        name: "floor".into(),
+                        shape: Shape::Plane {
+                            point: [0.0; 3],
+                            normal: [0.0, 1.0, 0.0],
+                            half_extent: f64::INFINITY,
+                        },
+                        world_from_object: Pose::IDENTITY,
+                        scale: 1.0,
+                        material: 0,
+                    },
+                    SceneObject {
+                        name: "egg".into(),
+                        shape: Shape::Quadric {
+                            coefficients: [1.0, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 3.0, 0.0, -1.0],
+                            min: [-1.0; 3],
+                            max: [1.0; 3],
+                        },
+                        world_from_object: Pose::IDENTITY,
+                        scale: 1.0,
+                        material: 0,
+                    },
+                ],
                 lights: vec![
                     Light::Point {
                         position: [0.0, 1.0, 0.0],
@@ -1332,8 +1616,23 @@ mod tests {
                         direction: [0.0, -1.0, 0.0],
                         irradiance: [2.0, 2.0, 2.0],
                     },
+                    Light::Area {
+                        corner: [0.0, 2.0, 0.0],
+                        edge_u: [1.0, 0.0, 0.0],
+                        edge_v: [0.0, 0.0, 1.0],
+                        radiance: [5.0, 5.0, 5.0],
+                    },
+                    Light::Environment {
+                        radiance: [0.5, 0.5, 0.5],
+                        map: None,
+                    },
                 ],
-                cameras: vec![(camera(), Pose::IDENTITY)],
+                cameras: vec![SceneCamera {
+                    camera: camera(),
+                    camera_from_world: Pose::IDENTITY,
+                    aperture_radius: 0.01,
+                    focus_distance: 2.5,
+                }],
             })),
             Value::Animation(Arc::new(Animation {
                 duration: 1.5,
@@ -1446,7 +1745,7 @@ mod tests {
         let image = Image::from_u16(2, 1, Channels::Gray, vec![0x0102, 0x0304]).unwrap();
         let bytes = encode_values(&[Value::image(image)]);
         let mut expected = b"OCVL".to_vec();
-        expected.extend_from_slice(&1u32.to_le_bytes());
+        expected.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
         expected.extend_from_slice(&1u64.to_le_bytes());
         expected.push(0);
         expected.extend_from_slice(&2u64.to_le_bytes());
@@ -1558,13 +1857,13 @@ mod tests {
         assert_eq!(decode_values(b""), Err(CodecError::BadMagic));
         assert_eq!(decode_values(b"OCVX\x01\0\0\0"), Err(CodecError::BadMagic));
         let mut b = b"OCVL".to_vec();
-        b.extend_from_slice(&2u32.to_le_bytes());
+        b.extend_from_slice(&(FORMAT_VERSION + 1).to_le_bytes());
         b.extend_from_slice(&0u64.to_le_bytes());
         assert_eq!(
             decode_values(&b),
             Err(CodecError::UnsupportedVersion {
-                found: 2,
-                supported: 1
+                found: FORMAT_VERSION + 1,
+                supported: FORMAT_VERSION
             })
         );
         let mut b = header(1);

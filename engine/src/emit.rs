@@ -40,11 +40,19 @@
 //! `property list uchar int vertex_indices`. Mesh colors are linear RGB; both files store them
 //! sRGB-encoded, as viewers expect (floats 0..1 in OBJ, bytes in PLY).
 //!
-//! **Scene.** One `NAME.json`: `{"objects":[{"name","vertex_count","triangle_count",
-//! "world_from_object":Pose,"albedo":[r,g,b],"mesh":{"positions","triangles","normals","uvs",
-//! "colors"}}…],"lights":[{"type":"point","position","intensity"} or
-//! {"type":"directional","direction","irradiance"}…],"cameras":[{"camera":Camera,
-//! "camera_from_world":Pose}…]}`. Absent optional mesh attributes are `null`.
+//! **Scene.** One `NAME.json`: `{"materials":[{"name","albedo","roughness","metalness",
+//! "emission","specular","shininess","transmission","ior","opacity","shading","textures":
+//! {"albedo"|"normal"|"roughness"|"metalness"|"emission":{"width","height","channels",
+//! "depth","wrap","filter","border","max_anisotropy","uv_scale"}}}…],"objects":[{"name",
+//! "shape":{"type":"mesh","vertex_count","triangle_count","mesh":{"positions","triangles",
+//! "normals","uvs","colors"}} or {"type":"sphere","center","radius"} or {"type":"plane",
+//! "point","normal","half_extent"} or {"type":"quadric","coefficients","min","max"},
+//! "world_from_object":Pose,"scale","material"}…],"lights":[{"type":"point","position",
+//! "intensity"} or {"type":"directional","direction","irradiance"} or {"type":"area","corner",
+//! "edge_u","edge_v","radiance"} or {"type":"environment","radiance","map":texture or null}…],
+//! "cameras":[{"camera":Camera,"camera_from_world":Pose,"aperture_radius","focus_distance"}…]}`.
+//! Absent optional mesh attributes are `null`, texels are not written, and non-finite numbers
+//! (an infinite plane's `half_extent`) are `null`.
 //!
 //! **Reconstruction.** COLMAP's text layout and header comments; cameras with skew
 //! (radial–tangential → `FULL_OPENCV`, fisheye → `OPENCV_FISHEYE`) lose the skew, which COLMAP
@@ -58,6 +66,7 @@
 //! folder that the value does not produce are left alone (a shorter list does not delete the
 //! extra elements of an earlier run).
 
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::fs;
 use std::io::{self, Write};
@@ -69,7 +78,8 @@ use crate::image_io::{self, ImageIoError, write_atomic_with};
 use crate::summary::fmt_sig6;
 use crate::value::{
     Bvh, Camera, Channels, Depth, Descriptors, Distortion, Image, Light, Matrix, Mesh, PointCloud,
-    Pose, Reconstruction, Scene, Value, ValueList,
+    Pose, Reconstruction, Scene, Shading, Shape, Texture, TextureFilter, TextureWrap, Value,
+    ValueList,
 };
 
 /// Errors writing outputs.
@@ -437,19 +447,88 @@ impl<'a> From<&'a Descriptors> for DescriptorsJson<'a> {
 
 #[derive(Serialize)]
 struct SceneJson<'a> {
+    materials: Vec<MaterialJson<'a>>,
     objects: Vec<SceneObjectJson<'a>>,
     lights: Vec<LightJson>,
     cameras: Vec<SceneCameraJson>,
 }
 
 #[derive(Serialize)]
+struct TextureJson {
+    width: usize,
+    height: usize,
+    channels: Channels,
+    depth: Depth,
+    wrap: TextureWrap,
+    filter: TextureFilter,
+    border: [f32; 4],
+    max_anisotropy: u32,
+    uv_scale: [f32; 2],
+}
+
+impl From<&Texture> for TextureJson {
+    fn from(t: &Texture) -> Self {
+        TextureJson {
+            width: t.image.width(),
+            height: t.image.height(),
+            channels: t.image.channels(),
+            depth: t.image.depth(),
+            wrap: t.wrap,
+            filter: t.filter,
+            border: t.border,
+            max_anisotropy: t.max_anisotropy,
+            uv_scale: t.uv_scale,
+        }
+    }
+}
+
+#[derive(Serialize)]
+struct MaterialJson<'a> {
+    name: &'a str,
+    albedo: [f32; 3],
+    roughness: f32,
+    metalness: f32,
+    emission: [f32; 3],
+    specular: f32,
+    shininess: f32,
+    transmission: f32,
+    ior: f32,
+    opacity: f32,
+    shading: Shading,
+    textures: BTreeMap<&'static str, TextureJson>,
+}
+
+#[derive(Serialize)]
+#[serde(tag = "type", rename_all = "lowercase")]
+enum ShapeJson<'a> {
+    Mesh {
+        vertex_count: usize,
+        triangle_count: usize,
+        mesh: &'a Mesh,
+    },
+    Sphere {
+        center: [f64; 3],
+        radius: f64,
+    },
+    Plane {
+        point: [f64; 3],
+        normal: [f64; 3],
+        half_extent: f64,
+    },
+    Quadric {
+        coefficients: [f64; 10],
+        min: [f64; 3],
+        max: [f64; 3],
+    },
+}
+
+#[derive(Serialize)]
 struct SceneObjectJson<'a> {
     name: &'a str,
-    vertex_count: usize,
-    triangle_count: usize,
+    shape: ShapeJson<'a>,
     world_from_object: PoseJson,
-    albedo: [f32; 3],
-    mesh: &'a Mesh,
+    scale: f64,
+    material: u32,
 }
 
 #[derive(Serialize)]
@@ -463,55 +542,138 @@ enum LightJson {
         direction: [f64; 3],
         irradiance: [f32; 3],
     },
+    Area {
+        corner: [f64; 3],
+        edge_u: [f64; 3],
+        edge_v: [f64; 3],
+        radiance: [f32; 3],
+    },
+    Environment {
+        radiance: [f32; 3],
+        map: Option<TextureJson>,
+    },
 }
 
 #[derive(Serialize)]
 struct SceneCameraJson {
     camera: CameraJson,
     camera_from_world: PoseJson,
+    aperture_radius: f64,
+    focus_distance: f64,
 }
 
 impl<'a> From<&'a Scene> for SceneJson<'a> {
     fn from(s: &'a Scene) -> Self {
         SceneJson {
+            materials: s
+                .materials
+                .iter()
+                .map(|m| {
+                    let textures = [
+                        ("albedo", &m.albedo_texture),
+                        ("normal", &m.normal_texture),
+                        ("roughness", &m.roughness_texture),
+                        ("metalness", &m.metalness_texture),
+                        ("emission", &m.emission_texture),
+                    ]
+                    .into_iter()
+                    .filter_map(|(k, t)| t.as_ref().map(|t| (k, TextureJson::from(t))))
+                    .collect();
+                    MaterialJson {
+                        name: &m.name,
+                        albedo: m.albedo,
+                        roughness: m.roughness,
+                        metalness: m.metalness,
+                        emission: m.emission,
+                        specular: m.specular,
+                        shininess: m.shininess,
+                        transmission: m.transmission,
+                        ior: m.ior,
+                        opacity: m.opacity,
+                        shading: m.shading,
+                        textures,
+                    }
+                })
+                .collect(),
             objects: s
                 .objects
                 .iter()
                 .map(|o| SceneObjectJson {
                     name: &o.name,
-                    vertex_count: o.mesh.positions.len(),
-                    triangle_count: o.mesh.triangles.len(),
+                    shape: match &o.shape {
+                        Shape::Mesh(m) => ShapeJson::Mesh {
+                            vertex_count: m.positions.len(),
+                            triangle_count: m.triangles.len(),
+                            mesh: m,
+                        },
+                        &Shape::Sphere { center, radius } => ShapeJson::Sphere { center, radius },
+                        &Shape::Plane {
+                            point,
+                            normal,
+                            half_extent,
+                        } => ShapeJson::Plane {
+                            point,
+                            normal,
+                            half_extent,
+                        },
+                        &Shape::Quadric {
+                            coefficients,
+                            min,
+                            max,
+                        } => ShapeJson::Quadric {
+                            coefficients,
+                            min,
+                            max,
+                        },
+                    },
                     world_from_object: PoseJson::from(&o.world_from_object),
-                    albedo: o.albedo,
-                    mesh: &o.mesh,
+                    scale: o.scale,
+                    material: o.material,
                 })
                 .collect(),
             lights: s
                 .lights
                 .iter()
-                .map(|l| match *l {
-                    Light::Point {
+                .map(|l| match l {
+                    &Light::Point {
                         position,
                         intensity,
                     } => LightJson::Point {
                         position,
                         intensity,
                     },
-                    Light::Directional {
+                    &Light::Directional {
                         direction,
                         irradiance,
                     } => LightJson::Directional {
                         direction,
                         irradiance,
                     },
+                    &Light::Area {
+                        corner,
+                        edge_u,
+                        edge_v,
+                        radiance,
+                    } => LightJson::Area {
+                        corner,
+                        edge_u,
+                        edge_v,
+                        radiance,
+                    },
+                    Light::Environment { radiance, map } => LightJson::Environment {
+                        radiance: *radiance,
+                        map: map.as_ref().map(TextureJson::from),
+                    },
                 })
                 .collect(),
             cameras: s
                 .cameras
                 .iter()
-                .map(|(camera, pose)| SceneCameraJson {
-                    camera: CameraJson::from(camera),
-                    camera_from_world: PoseJson::from(pose),
+                .map(|c| SceneCameraJson {
+                    camera: CameraJson::from(&c.camera),
+                    camera_from_world: PoseJson::from(&c.camera_from_world),
+                    aperture_radius: c.aperture_radius,
+                    focus_distance: c.focus_distance,
                 })
                 .collect(),
         }
@@ -853,7 +1015,6 @@ fn emit_list(folder: &Path, list: &ValueList) -> Result<Vec<PathBuf>, EmitError>
 
 #[cfg(test)]
 mod tests {
-    use std::collections::BTreeMap;
     use std::sync::Arc;
 
     use serde_json::json;
@@ -862,8 +1023,8 @@ mod tests {
     use crate::image_io::{DecodeLimits, read_image};
     use crate::types::PortType;
     use crate::value::{
-        Animation, AnimationChannel, CameraModel, Distortion, Intrinsics, Keypoint, Match, Metrics,
-        ReconImage, ReconPoint, SceneObject, TrackElement, Tracks,
+        Animation, AnimationChannel, CameraModel, Distortion, Intrinsics, Keypoint, Match,
+        Material, Metrics, ReconImage, ReconPoint, SceneCamera, SceneObject, TrackElement, Tracks,
     };
 
     fn scratch(name: &str) -> PathBuf {
@@ -1501,35 +1662,56 @@ mod tests {
     fn scene_json() {
         let dir = scratch("scene");
         let scene = Scene {
-            objects: vec![SceneObject {
-                name: "quad".into(),
-                mesh: Arc::new(quad(false, false, false)),
-                world_from_object: Pose::IDENTITY,
-                albedo: [0.5, 0.5, 0.5],
-            }],
+            materials: vec![Material::default()],
+            objects: vec![
+                SceneObject {
+                    name: "quad".into(),
+                    shape: Shape::Mesh(Arc::new(quad(false, false, false))),
+                    world_from_object: Pose::IDENTITY,
+                    scale: 1.0,
+                    material: 0,
+                },
+                SceneObject {
+                    name: "floor".into(),
+                    shape: Shape::Plane {
+                        point: [0.0; 3],
+                        normal: [0.0, 1.0, 0.0],
+                        half_extent: f64::INFINITY,
+                    },
+                    world_from_object: Pose::IDENTITY,
+                    scale: 1.0,
+                    material: 0,
+                },
+            ],
             lights: vec![Light::Point {
                 position: [0.0, 5.0, 0.0],
                 intensity: [1.0, 1.0, 1.0],
             }],
-            cameras: vec![(
-                Camera {
+            cameras: vec![SceneCamera {
+                camera: Camera {
                     model: CameraModel::SimplePinhole,
                     width: 64,
                     height: 48,
                     params: vec![50.0, 32.0, 24.0],
                 },
-                Pose::IDENTITY,
-            )],
+                camera_from_world: Pose::IDENTITY,
+                aperture_radius: 0.0,
+                focus_distance: 1.0,
+            }],
         };
         let v = emit_json(&dir, Value::Scene(Arc::new(scene)));
         assert_eq!(v["objects"][0]["name"], "quad");
-        assert_eq!(v["objects"][0]["vertex_count"], 4);
-        assert_eq!(v["objects"][0]["triangle_count"], 2);
+        assert_eq!(v["objects"][0]["shape"]["type"], "mesh");
+        assert_eq!(v["objects"][0]["shape"]["vertex_count"], 4);
+        assert_eq!(v["objects"][0]["shape"]["triangle_count"], 2);
         assert_eq!(
-            v["objects"][0]["mesh"]["triangles"],
+            v["objects"][0]["shape"]["mesh"]["triangles"],
             json!([[0, 1, 2], [0, 2, 3]])
         );
-        assert_eq!(v["objects"][0]["mesh"]["normals"], json!(null));
+        assert_eq!(v["objects"][0]["shape"]["mesh"]["normals"], json!(null));
+        assert_eq!(v["objects"][1]["shape"]["half_extent"], json!(null));
+        assert_eq!(v["materials"][0]["shading"], "lambert");
+        assert_eq!(v["cameras"][0]["focus_distance"], 1.0);
         assert_eq!(
             v["lights"][0],
             json!({"type": "point", "position": [0.0, 5.0, 0.0], "intensity": [1.0, 1.0, 1.0]})

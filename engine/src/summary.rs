@@ -633,12 +633,12 @@ fn reconstruction_summary(r: &Reconstruction) -> String {
 }
 
 fn scene_summary(scene: &Scene) -> String {
-    let vertices: usize = scene.objects.iter().map(|o| o.mesh.positions.len()).sum();
-    let triangles: usize = scene.objects.iter().map(|o| o.mesh.triangles.len()).sum();
+    let (vertices, triangles) = scene.mesh_counts();
     let names: Vec<String> = scene.objects.iter().map(|o| ron_string(&o.name)).collect();
     format!(
-        "Scene(objects: {}, vertices: {vertices}, triangles: {triangles}, lights: {}, cameras: {}, names: [{}])",
+        "Scene(objects: {}, materials: {}, vertices: {vertices}, triangles: {triangles}, lights: {}, cameras: {}, names: [{}])",
         scene.objects.len(),
+        scene.materials.len(),
         scene.lights.len(),
         scene.cameras.len(),
         names.join(", ")

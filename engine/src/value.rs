@@ -861,23 +861,208 @@ impl Bvh {
     }
 }
 
-/// A mesh instance placed in a scene.
+/// How texture coordinates outside `[0, 1]` are mapped (the OpenGL/Vulkan sampler address modes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TextureWrap {
+    /// Tile: `u − floor(u)`.
+    #[default]
+    Repeat,
+    /// Tile, mirroring every other copy.
+    MirroredRepeat,
+    /// Clamp to the outermost texel centres.
+    ClampToEdge,
+    /// Outside `[0, 1]` read the texture's border colour.
+    ClampToBorder,
+}
+
+/// How a texture is filtered when sampled.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TextureFilter {
+    /// The texel whose footprint holds the sample point.
+    Nearest,
+    /// Bilinear interpolation of the four nearest texels (level 0 only).
+    Bilinear,
+    /// Trilinear: bilinear in the two mip levels around the pixel footprint, blended
+    /// (Williams 1983).
+    #[default]
+    Trilinear,
+    /// Anisotropic: several trilinear probes along the footprint's major axis, up to
+    /// [`Texture::max_anisotropy`] of them.
+    Anisotropic,
+}
+
+/// An image bound to a sampler: how a material reads it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Texture {
+    /// Texels; gray, RGB or RGBA, u8 (read as `v / 255`), u16 (`v / 65535`) or f32. Colour
+    /// textures hold linear values (no sRGB decoding is applied).
+    pub image: Arc<Image>,
+    /// Address mode for coordinates outside `[0, 1]`.
+    pub wrap: TextureWrap,
+    /// Filter.
+    pub filter: TextureFilter,
+    /// Colour read outside `[0, 1]` with [`TextureWrap::ClampToBorder`], RGBA.
+    pub border: [f32; 4],
+    /// Most probes along the footprint for [`TextureFilter::Anisotropic`] (1–16).
+    pub max_anisotropy: u32,
+    /// Texture coordinates are multiplied by this before sampling (tiling).
+    pub uv_scale: [f32; 2],
+}
+
+/// Surface appearance. One parameter set serves both renderers: the rasterizer shades with
+/// [`Material::shading`]; the path tracer reads the physical parameters (Lambertian base,
+/// GGX specular lobe by `roughness`/`metalness`, dielectric by `transmission`/`ior`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Material {
+    /// Name, for diagnostics.
+    pub name: String,
+    /// Base colour (diffuse albedo; specular colour of metals), linear RGB in `[0, 1]`.
+    pub albedo: [f32; 3],
+    /// Multiplies `albedo` (RGB; a gray texture scales all three).
+    pub albedo_texture: Option<Texture>,
+    /// Tangent-space normal map (RGB, `n = 2·rgb − 1`, +z out of the surface).
+    pub normal_texture: Option<Texture>,
+    /// GGX roughness `α = roughness²`, in `[0, 1]`.
+    pub roughness: f32,
+    /// Multiplies `roughness` (first channel).
+    pub roughness_texture: Option<Texture>,
+    /// Metalness in `[0, 1]`: 0 dielectric, 1 metal.
+    pub metalness: f32,
+    /// Multiplies `metalness` (first channel).
+    pub metalness_texture: Option<Texture>,
+    /// Emitted radiance, linear RGB, W·sr⁻¹·m⁻² per unit.
+    pub emission: [f32; 3],
+    /// Multiplies `emission` (RGB).
+    pub emission_texture: Option<Texture>,
+    /// Specular weight of the Phong and Blinn–Phong models.
+    pub specular: f32,
+    /// Specular exponent of the Phong and Blinn–Phong models.
+    pub shininess: f32,
+    /// 0 opaque; 1 a clear dielectric that refracts (path tracer, Whitted).
+    pub transmission: f32,
+    /// Index of refraction of a transmissive material (glass ≈ 1.5).
+    pub ior: f32,
+    /// Coverage for alpha blending in the rasterizer, `[0, 1]` (1 opaque).
+    pub opacity: f32,
+    /// Rasterizer shading model.
+    pub shading: Shading,
+}
+
+impl Default for Material {
+    fn default() -> Self {
+        Material {
+            name: String::new(),
+            albedo: [0.8, 0.8, 0.8],
+            albedo_texture: None,
+            normal_texture: None,
+            roughness: 0.5,
+            roughness_texture: None,
+            metalness: 0.0,
+            metalness_texture: None,
+            emission: [0.0; 3],
+            emission_texture: None,
+            specular: 0.0,
+            shininess: 32.0,
+            transmission: 0.0,
+            ior: 1.5,
+            opacity: 1.0,
+            shading: Shading::Lambert,
+        }
+    }
+}
+
+impl Material {
+    /// The material's textures, in field order.
+    pub fn textures(&self) -> impl Iterator<Item = &Texture> {
+        [
+            &self.albedo_texture,
+            &self.normal_texture,
+            &self.roughness_texture,
+            &self.metalness_texture,
+            &self.emission_texture,
+        ]
+        .into_iter()
+        .flatten()
+    }
+}
+
+/// Rasterizer shading models.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Shading {
+    /// Albedo only, no lighting.
+    Unlit,
+    /// One normal per triangle (the geometric normal), Lambert + Blinn–Phong specular.
+    Flat,
+    /// Lighting evaluated at the vertices and interpolated (Gouraud 1971).
+    Gouraud,
+    /// Lambertian diffuse with interpolated normals.
+    #[default]
+    Lambert,
+    /// Phong's reflection model with interpolated normals (Phong 1975).
+    Phong,
+    /// Blinn–Phong (half-vector) model with interpolated normals (Blinn 1977).
+    BlinnPhong,
+    /// Metallic–roughness PBR: Lambert + GGX/Smith/Schlick (Walter et al. 2007; Karis 2013).
+    Pbr,
+}
+
+/// Geometry of a scene object, in object coordinates.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub enum Shape {
+    /// A triangle mesh.
+    Mesh(Arc<Mesh>),
+    /// A sphere; texture coordinates are longitude/latitude in `[0, 1]`.
+    Sphere {
+        /// Centre.
+        center: [f64; 3],
+        /// Radius (> 0).
+        radius: f64,
+    },
+    /// A square piece of a plane (infinite when `half_extent` is +∞); texture coordinates are
+    /// the in-plane coordinates in world units.
+    Plane {
+        /// A point on the plane, the square's centre.
+        point: [f64; 3],
+        /// Normal (the front side).
+        normal: [f64; 3],
+        /// Half the square's side.
+        half_extent: f64,
+    },
+    /// The implicit quadric `xᵀ Q x = 0` with `Q` symmetric 4×4 given by its upper triangle
+    /// `[q00, q01, q02, q03, q11, q12, q13, q22, q23, q33]` on homogeneous `(x, y, z, 1)`,
+    /// clipped to the box `min`–`max` (ellipsoids, cylinders, cones, paraboloids, hyperboloids).
+    Quadric {
+        /// Upper triangle of `Q`, row by row.
+        coefficients: [f64; 10],
+        /// Clip box, smallest corner.
+        min: [f64; 3],
+        /// Clip box, largest corner.
+        max: [f64; 3],
+    },
+}
+
+/// An object placed in a scene.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SceneObject {
     /// Object name.
     pub name: String,
     /// Geometry.
-    pub mesh: Arc<Mesh>,
-    /// Object-to-world transform.
+    pub shape: Shape,
+    /// Object-to-world rigid transform, applied after `scale`.
     pub world_from_object: Pose,
-    /// Diffuse albedo, linear RGB.
-    pub albedo: [f32; 3],
+    /// Uniform scale applied in object coordinates (> 0).
+    pub scale: f64,
+    /// Index into [`Scene::materials`].
+    pub material: u32,
 }
 
 /// A light source.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, PartialEq)]
 pub enum Light {
-    /// A point light at `position` with radiant intensity `intensity` (linear RGB).
+    /// A point light at `position` with radiant intensity `intensity` (W·sr⁻¹, linear RGB).
     Point {
         /// Position in world coordinates.
         position: [f64; 3],
@@ -888,20 +1073,69 @@ pub enum Light {
     Directional {
         /// Direction of travel (unit).
         direction: [f64; 3],
-        /// Irradiance per channel.
+        /// Irradiance per channel on a surface facing the light (W·m⁻²).
         irradiance: [f32; 3],
+    },
+    /// A parallelogram emitter `corner + s·edge_u + t·edge_v`, `s, t ∈ [0, 1]`, radiating
+    /// `radiance` from the side `edge_u × edge_v` points to.
+    Area {
+        /// One corner.
+        corner: [f64; 3],
+        /// First edge.
+        edge_u: [f64; 3],
+        /// Second edge.
+        edge_v: [f64; 3],
+        /// Emitted radiance (W·sr⁻¹·m⁻²).
+        radiance: [f32; 3],
+    },
+    /// Light arriving from infinitely far away in every direction: `radiance`, times the
+    /// equirectangular `map` when given (u = longitude about +y, v = polar angle from +y).
+    Environment {
+        /// Constant radiance (W·sr⁻¹·m⁻²).
+        radiance: [f32; 3],
+        /// Optional latitude–longitude map.
+        map: Option<Texture>,
     },
 }
 
-/// A renderable scene: objects, lights and viewing cameras.
-#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+/// A viewing camera: intrinsics, pose, and a thin lens.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SceneCamera {
+    /// Intrinsics and image size (x right, y down, z forward).
+    pub camera: Camera,
+    /// World-to-camera transform.
+    pub camera_from_world: Pose,
+    /// Lens aperture radius in world units; 0 is a pinhole.
+    pub aperture_radius: f64,
+    /// Distance along the optical axis that is in focus (world units; used when
+    /// `aperture_radius > 0`).
+    pub focus_distance: f64,
+}
+
+/// A renderable scene: materials, objects, lights and viewing cameras.
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct Scene {
+    /// Materials, referenced by index from [`SceneObject::material`].
+    pub materials: Vec<Material>,
     /// Objects.
     pub objects: Vec<SceneObject>,
     /// Lights.
     pub lights: Vec<Light>,
-    /// Cameras with their world-to-camera poses.
-    pub cameras: Vec<(Camera, Pose)>,
+    /// Cameras.
+    pub cameras: Vec<SceneCamera>,
+}
+
+impl Scene {
+    /// Vertices and triangles over the scene's mesh objects.
+    pub fn mesh_counts(&self) -> (usize, usize) {
+        self.objects
+            .iter()
+            .filter_map(|o| match &o.shape {
+                Shape::Mesh(m) => Some((m.positions.len(), m.triangles.len())),
+                _ => None,
+            })
+            .fold((0, 0), |(v, t), (a, b)| (v + a, t + b))
+    }
 }
 
 /// One animated property: keyframe times and values (`values.len() == times.len() × width`).
@@ -1066,7 +1300,27 @@ impl Value {
                     + b.corners.len() * 36
                     + mesh_bytes(&b.mesh)
             }
-            Value::Scene(s) => s.objects.iter().map(|o| mesh_bytes(&o.mesh)).sum(),
+            Value::Scene(s) => {
+                let shapes: usize = s
+                    .objects
+                    .iter()
+                    .map(|o| match &o.shape {
+                        Shape::Mesh(m) => mesh_bytes(m),
+                        _ => 128,
+                    })
+                    .sum();
+                let textures: usize = s
+                    .materials
+                    .iter()
+                    .flat_map(Material::textures)
+                    .chain(s.lights.iter().filter_map(|l| match l {
+                        Light::Environment { map, .. } => map.as_ref(),
+                        _ => None,
+                    }))
+                    .map(|t| t.image.byte_size())
+                    .sum();
+                shapes + textures
+            }
             Value::Animation(a) => a
                 .channels
                 .iter()

@@ -4,3 +4,4 @@
 pub mod bvh;
 pub mod primitives;
 pub mod raycast;
+pub mod scene;
