@@ -5,3 +5,4 @@ pub mod bvh;
 pub mod primitives;
 pub mod raycast;
 pub mod scene;
+pub mod texture;

@@ -68,7 +68,8 @@ impl View {
             .chain(&c.camera_from_world.rotation)
             .chain(&c.camera_from_world.translation)
             .all(|v| v.is_finite());
-        if !finite || !(k.fx > 0.0 && k.fy > 0.0) {
+        let positive = k.fx > 0.0 && k.fy > 0.0;
+        if !(finite && positive) {
             return Err(format!(
                 "camera intrinsics and pose must be finite with fx, fy > 0 (fx {}, fy {})",
                 k.fx, k.fy
