@@ -93,6 +93,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<video::dense_lk::FlowLk>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::quality::Quality>()?;
+    registry.register::<analyze::depth_agreement::DepthAgreement>()?;
     registry.register::<analyze::evaluate::Evaluate>()?;
     registry.register::<analyze::evaluate::Roc>()?;
     registry.register::<filter::threshold::Threshold>()?;
@@ -110,6 +111,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<io::read_camera::ReadCamera>()?;
     registry.register::<io::read_bal::ReadBal>()?;
     registry.register::<io::read_mesh::ReadMesh>()?;
+    registry.register::<io::read_scene::ReadScene>()?;
     registry.register::<optimize::affine_init::AffineInit>()?;
     registry.register::<render::raycast::BuildBvh>()?;
     registry.register::<render::raycast::Raycast>()?;

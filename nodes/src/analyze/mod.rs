@@ -1,5 +1,6 @@
 //! Measurements on values.
 
+pub mod depth_agreement;
 pub mod evaluate;
 pub mod histogram;
 pub mod match_accuracy;

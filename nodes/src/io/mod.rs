@@ -5,4 +5,5 @@ pub mod read_camera;
 pub mod read_correspondences;
 pub mod read_image;
 pub mod read_mesh;
+pub mod read_scene;
 pub mod write_image;
