@@ -3,6 +3,7 @@
 
 pub mod bvh;
 pub mod primitives;
+pub mod raster;
 pub mod raycast;
 pub mod scene;
 pub mod texture;
