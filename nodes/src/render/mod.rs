@@ -1,9 +1,12 @@
-//! Rendering: acceleration structures and ray casting over triangle meshes, and the procedural
-//! meshes used as fixtures.
+//! Rendering: scenes, a tiled rasterizer, a Whitted ray tracer and path tracer, acceleration
+//! structures and ray casting over triangle meshes, textures, and the procedural meshes used
+//! as fixtures.
 
+pub mod bsdf;
 pub mod bvh;
 pub mod primitives;
 pub mod raster;
 pub mod raycast;
 pub mod scene;
 pub mod texture;
+pub mod trace;
