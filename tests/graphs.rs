@@ -20,6 +20,7 @@ const SNAPSHOTTED: &[&str] = &[
     "ransac_fundamental.ron",
     "ransac_homography.ron",
     "raycast.ron",
+    "render.ron",
     "segment.ron",
     "two_branches.ron",
     "two_view.ron",
@@ -77,6 +78,11 @@ fn homography() {
 #[test]
 fn raycast() {
     check_graph("raycast.ron");
+}
+
+#[test]
+fn render() {
+    check_graph("render.ron");
 }
 
 #[test]

@@ -25,6 +25,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<capture::sequence::Sequence>()?;
     registry.register::<capture::moving::MovingShapes>()?;
     registry.register::<capture::moving::Select>()?;
+    registry.register::<capture::render::CaptureRender>()?;
     registry.register::<filter::grayscale::Grayscale>()?;
     registry.register::<filter::color::ConvertColor>()?;
     registry.register::<filter::convert::ConvertType>()?;

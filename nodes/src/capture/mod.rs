@@ -2,4 +2,5 @@
 
 pub mod moving;
 pub mod pattern;
+pub mod render;
 pub mod sequence;

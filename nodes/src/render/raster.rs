@@ -454,11 +454,7 @@ fn quadratic_roots(a: f64, b: f64, c: f64) -> [Option<f64>; 2] {
     }
     let s = disc.sqrt();
     let q = -0.5 * (b + if b >= 0.0 { s } else { -s });
-    let (r0, r1) = if q == 0.0 {
-        (0.0, 0.0)
-    } else {
-        (q / a, c / q)
-    };
+    let (r0, r1) = if q == 0.0 { (0.0, 0.0) } else { (q / a, c / q) };
     if r0 <= r1 {
         [Some(r0), Some(r1)]
     } else {
@@ -600,10 +596,9 @@ impl Analytic {
             })
         };
         let out = match self {
-            Analytic::Sphere { center, radius, .. } => corners(
-                sub(*center, [*radius; 3]),
-                add(*center, [*radius; 3]),
-            ),
+            Analytic::Sphere { center, radius, .. } => {
+                corners(sub(*center, [*radius; 3]), add(*center, [*radius; 3]))
+            }
             Analytic::Plane {
                 point,
                 t1,
@@ -628,8 +623,7 @@ impl Analytic {
                 translation,
                 scale,
                 ..
-            } => corners(*min, *max)
-                .map(|c| add(rotate(rotation, mul(c, *scale)), *translation)),
+            } => corners(*min, *max).map(|c| add(rotate(rotation, mul(c, *scale)), *translation)),
         };
         out.iter()
             .all(|c| c.iter().all(|v| v.is_finite()))
@@ -750,7 +744,9 @@ pub fn validate_scene(scene: &Scene) -> Result<(), String> {
             .chain(&scalars)
             .all(|v| v.is_finite())
         {
-            return Err(format!("material {i} (`{name}`) has a non-finite parameter"));
+            return Err(format!(
+                "material {i} (`{name}`) has a non-finite parameter"
+            ));
         }
         if !(0.0..=1.0).contains(&m.opacity) {
             return Err(format!(
@@ -791,7 +787,9 @@ pub fn validate_scene(scene: &Scene) -> Result<(), String> {
             ));
         }
         match &o.shape {
-            Shape::Mesh(m) => validate_mesh(m).map_err(|e| format!("object {i} (`{name}`): {e}"))?,
+            Shape::Mesh(m) => {
+                validate_mesh(m).map_err(|e| format!("object {i} (`{name}`): {e}"))?
+            }
             Shape::Sphere { center, radius } => {
                 if !finite3(center) || !(*radius > 0.0 && radius.is_finite()) {
                     return Err(format!(
@@ -1148,7 +1146,9 @@ impl<'p> SetupCtx<'p> {
             _ => {}
         }
         let mut poly = Poly {
-            v: [c[0], c[1], c[2], [0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3]],
+            v: [
+                c[0], c[1], c[2], [0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3], [0.0; 3],
+            ],
             n: 3,
         };
         for pl in &self.clip_planes {
@@ -1165,7 +1165,10 @@ impl<'p> SetupCtx<'p> {
             if !(x.is_finite() && y.is_finite()) {
                 return;
             }
-            *f = [(x * SUB as f64).round() as i64, (y * SUB as f64).round() as i64];
+            *f = [
+                (x * SUB as f64).round() as i64,
+                (y * SUB as f64).round() as i64,
+            ];
         }
         let mut key = None;
         for i in 1..poly.n - 1 {
@@ -1181,8 +1184,7 @@ impl<'p> SetupCtx<'p> {
             let x_lo = ceil_div(a[0].min(b[0]).min(cc[0]) - r, SUB).max(0);
             let x_hi = floor_div(a[0].max(b[0]).max(cc[0]) + r, SUB).min(self.width as i64 - 1);
             let y_lo = ceil_div(a[1].min(b[1]).min(cc[1]) - r, SUB).max(0);
-            let y_hi =
-                floor_div(a[1].max(b[1]).max(cc[1]) + r, SUB).min(self.height as i64 - 1);
+            let y_hi = floor_div(a[1].max(b[1]).max(cc[1]) + r, SUB).min(self.height as i64 - 1);
             if x_lo > x_hi || y_lo > y_hi {
                 continue;
             }
@@ -1359,7 +1361,12 @@ impl Tiles {
     /// Pixel rectangle `[x0, y0, x1, y1)` of tile `i`.
     fn rect(&self, i: usize) -> [usize; 4] {
         let (x0, y0) = ((i % self.nx) * TILE, (i / self.nx) * TILE);
-        [x0, y0, (x0 + TILE).min(self.width), (y0 + TILE).min(self.height)]
+        [
+            x0,
+            y0,
+            (x0 + TILE).min(self.width),
+            (y0 + TILE).min(self.height),
+        ]
     }
 }
 
@@ -1449,8 +1456,8 @@ fn cover<F: FnMut(usize, usize, f64)>(
         ea[k] = ca;
         eb[k] = cb;
         // Value at the centre of pixel (x0, y0).
-        e0[k] = ca * (x0 as i64 * SUB - a[0]) + cb * (y0 as i64 * SUB - a[1])
-            - i64::from(!top_left);
+        e0[k] =
+            ca * (x0 as i64 * SUB - a[0]) + cb * (y0 as i64 * SUB - a[1]) - i64::from(!top_left);
     }
     let step_x = ea.map(|a| a * SUB);
     let step_y = eb.map(|b| b * SUB);
@@ -1465,11 +1472,7 @@ fn cover<F: FnMut(usize, usize, f64)>(
             let ky_term = ky * (y as f64 + fy) + kc;
             for x in x0..=x1 {
                 if (e[0] | e[1] | e[2]) >= 0 {
-                    f(
-                        base + (x - rect[0]),
-                        s,
-                        kx * (x as f64 + fx) + ky_term,
-                    );
+                    f(base + (x - rect[0]), s, kx * (x as f64 + fx) + ky_term);
                 }
                 e = [e[0] + step_x[0], e[1] + step_x[1], e[2] + step_x[2]];
             }
@@ -2089,9 +2092,8 @@ impl Renderer<'_> {
         let dbx = [0, 1, 2].map(|i| (minv[i][0] - b[i] * sx) / s);
         let dby = [0, 1, 2].map(|i| (minv[i][1] - b[i] * sy) / s);
         let pw = idx.map(|i| m.world[i]);
-        let lerp3 = |a: [V3; 3], w: [f64; 3]| {
-            add(add(mul(a[0], w[0]), mul(a[1], w[1])), mul(a[2], w[2]))
-        };
+        let lerp3 =
+            |a: [V3; 3], w: [f64; 3]| add(add(mul(a[0], w[0]), mul(a[1], w[1])), mul(a[2], w[2]));
         let p = lerp3(pw, b);
         let t = norm(self.view.camera_direction(x, y)) / s;
         let v = normalize(sub(self.view.eye, p));
@@ -2100,9 +2102,10 @@ impl Renderer<'_> {
         if flip {
             ng = mul(ng, -1.0);
         }
-        let vn = m.normals.as_ref().map(|ns| {
-            idx.map(|i| if flip { mul(ns[i], -1.0) } else { ns[i] })
-        });
+        let vn = m
+            .normals
+            .as_ref()
+            .map(|ns| idx.map(|i| if flip { mul(ns[i], -1.0) } else { ns[i] }));
         let ns = vn
             .map(|n| normalize(lerp3(n, b)))
             .filter(|n| *n != [0.0; 3])
@@ -2175,7 +2178,11 @@ impl Renderer<'_> {
             if a.wraps_u() {
                 d[0] -= d[0].round();
             }
-            if d.iter().all(|v| v.is_finite()) { d } else { [0.0; 2] }
+            if d.iter().all(|v| v.is_finite()) {
+                d
+            } else {
+                [0.0; 2]
+            }
         };
         let (dpdu, dpdv) = a.tangents(p, hit.n);
         Some(Surface {
@@ -2268,7 +2275,10 @@ impl Renderer<'_> {
                     let vi = normalize(sub(self.view.eye, c.p[i]));
                     let w = c.b[i] * cos;
                     diffuse = add(diffuse, mul(e, w / PI));
-                    specular = add(specular, mul(e, w * blinn_phong_lobe(c.n[i], l, vi, spec, sh)));
+                    specular = add(
+                        specular,
+                        mul(e, w * blinn_phong_lobe(c.n[i], l, vi, spec, sh)),
+                    );
                 }
                 if diffuse == [0.0; 3] && specular == [0.0; 3] {
                     continue;
@@ -2390,8 +2400,7 @@ impl Renderer<'_> {
                     let pid = id[p * ns + cs];
                     let c = if pid == NONE {
                         self.background
-                    } else if let Some(&(_, c)) = shaded[..n_shaded].iter().find(|e| e.0 == pid)
-                    {
+                    } else if let Some(&(_, c)) = shaded[..n_shaded].iter().find(|e| e.0 == pid) {
                         c
                     } else {
                         let surf = if pid == cid {
@@ -2484,11 +2493,9 @@ impl Renderer<'_> {
 fn centroid_depth(prim: &Prim, prep: &Prepared<'_>, view: &View) -> f64 {
     let z = |p: V3| view.to_camera(p)[2];
     match prep.geom.get(prim.object as usize) {
-        Some(Geom::Mesh(m)) => m
-            .mesh
-            .triangles
-            .get(prim.tri as usize)
-            .map_or(0.0, |t| t.iter().map(|&i| z(m.world[i as usize])).sum::<f64>() / 3.0),
+        Some(Geom::Mesh(m)) => m.mesh.triangles.get(prim.tri as usize).map_or(0.0, |t| {
+            t.iter().map(|&i| z(m.world[i as usize])).sum::<f64>() / 3.0
+        }),
         Some(Geom::Analytic(a)) => match (a.bounds(), a) {
             (Some(c), _) => c.iter().map(|&p| z(p)).sum::<f64>() / 8.0,
             (None, Analytic::Plane { point, .. }) => z(*point),
@@ -2849,8 +2856,8 @@ impl Operator for Rasterize {
                 ));
             }
         };
-        let r = rasterize(scene, self.camera, &self.options)
-            .map_err(|e| OpError::input("scene", e))?;
+        let r =
+            rasterize(scene, self.camera, &self.options).map_err(|e| OpError::input("scene", e))?;
         let image = |channels: Channels, data: Vec<f32>| {
             Image::new(r.width, r.height, channels, PixelData::F32(data))
                 .map(Value::image)
@@ -2908,7 +2915,12 @@ mod tests {
             positions: vec![p(0.0, 0.0), p(1.0, 0.0), p(1.0, 1.0), p(0.0, 1.0)],
             triangles: vec![[0, 1, 2], [0, 2, 3]],
             normals: None,
-            uvs: Some(vec![[0.0, 0.0], [uv_max, 0.0], [uv_max, uv_max], [0.0, uv_max]]),
+            uvs: Some(vec![
+                [0.0, 0.0],
+                [uv_max, 0.0],
+                [uv_max, uv_max],
+                [0.0, uv_max],
+            ]),
             colors: None,
         }
     }
@@ -3035,7 +3047,9 @@ mod tests {
             .iter()
             .filter(|t| {
                 let zs = t.map(|i| z[i as usize]);
-                let near_eye = t.iter().all(|&i| norm(sub(f3(big.positions[i as usize]), eye)) < 6.0);
+                let near_eye = t
+                    .iter()
+                    .all(|&i| norm(sub(f3(big.positions[i as usize]), eye)) < 6.0);
                 near_eye && zs.iter().any(|&v| v < 1e-3) && zs.iter().any(|&v| v > 1e-3)
             })
             .count();
@@ -3128,7 +3142,11 @@ mod tests {
         let sampler = TextureSampler::new(&tex).unwrap();
         let mut m = unlit([1.0; 3], 1.0);
         m.albedo_texture = Some(tex);
-        let s = scene(vec![m], vec![object(Shape::Mesh(Arc::new(mesh.clone())), 0)], vec![]);
+        let s = scene(
+            vec![m],
+            vec![object(Shape::Mesh(Arc::new(mesh.clone())), 0)],
+            vec![],
+        );
         let (w, h) = (128usize, 96usize);
         let cam = look_at(w, h, 60.0, [0.5, 1.0, -1.0], [0.0, 0.0, 20.0]);
         let view = view_of(&cam);
@@ -3175,8 +3193,7 @@ mod tests {
                 let area = (q[1][0] - q[0][0]) * (q[2][1] - q[0][1])
                     - (q[1][1] - q[0][1]) * (q[2][0] - q[0][0]);
                 let lam = |a: V3, b: V3| {
-                    ((b[0] - a[0]) * (y as f64 - a[1]) - (b[1] - a[1]) * (x as f64 - a[0]))
-                        / area
+                    ((b[0] - a[0]) * (y as f64 - a[1]) - (b[1] - a[1]) * (x as f64 - a[0])) / area
                 };
                 let l = [lam(q[1], q[2]), lam(q[2], q[0]), lam(q[0], q[1])];
                 let au = (0..3)
@@ -3221,11 +3238,20 @@ mod tests {
         let view = integer_view(40, 36, 16.0, 16.0);
         // Pixel (px, py) at depth z.
         let at = |px: f64, py: f64, z: f64| -> [f32; 3] {
-            [((px - 16.0) / 32.0 * z) as f32, ((py - 16.0) / 32.0 * z) as f32, z as f32]
+            [
+                ((px - 16.0) / 32.0 * z) as f32,
+                ((py - 16.0) / 32.0 * z) as f32,
+                z as f32,
+            ]
         };
         // Square (2, 2)–(29, 29) split along the diagonal through the centres (k, k).
         let sq = mesh_shape(
-            vec![at(2.0, 2.0, 1.0), at(29.0, 2.0, 1.0), at(29.0, 29.0, 1.0), at(2.0, 29.0, 1.0)],
+            vec![
+                at(2.0, 2.0, 1.0),
+                at(29.0, 2.0, 1.0),
+                at(29.0, 29.0, 1.0),
+                at(2.0, 29.0, 1.0),
+            ],
             vec![[0, 1, 2], [0, 2, 3]],
         );
         let s = scene(vec![Material::default()], vec![object(sq, 0)], vec![]);
@@ -3662,7 +3688,11 @@ mod tests {
             // Depth and ids describe the nearest surface, transparent or not.
             let green_index = objects.iter().position(|o| o.material == 2).unwrap();
             assert_eq!(out.ids[16 * 32 + 16], green_index as f32);
-            assert!((out.depth[16 * 32 + 16] - 2.5).abs() < 1e-3, "{}", out.depth[16 * 32 + 16]);
+            assert!(
+                (out.depth[16 * 32 + 16] - 2.5).abs() < 1e-3,
+                "{}",
+                out.depth[16 * 32 + 16]
+            );
         }
     }
 
@@ -3948,7 +3978,12 @@ mod tests {
         assert!(out.color.chunks(3).all(|c| c == [0.1, 0.2, 0.3]));
         // Zero-area triangles: nothing drawn.
         let flat = mesh_shape(
-            vec![[0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [2.0, 2.0, 0.0], [0.5, 0.0, 0.0]],
+            vec![
+                [0.0, 0.0, 0.0],
+                [1.0, 1.0, 0.0],
+                [2.0, 2.0, 0.0],
+                [0.5, 0.0, 0.0],
+            ],
             vec![[0, 1, 2], [3, 3, 3], [0, 0, 1]],
         );
         let s = scene(vec![Material::default()], vec![object(flat, 0)], vec![]);
@@ -3964,18 +3999,31 @@ mod tests {
         // Bad triangle index and bad material index.
         let bad = mesh_shape(vec![[0.0; 3]; 3], vec![[0, 1, 3]]);
         let s = scene(vec![Material::default()], vec![object(bad, 0)], vec![]);
-        assert!(rasterize_view(&s, &view, &no_shadows()).unwrap_err().contains("triangle 0"));
+        assert!(
+            rasterize_view(&s, &view, &no_shadows())
+                .unwrap_err()
+                .contains("triangle 0")
+        );
         let ball = Shape::Sphere {
             center: [0.0; 3],
             radius: 1.0,
         };
-        let s = scene(vec![Material::default()], vec![object(ball.clone(), 1)], vec![]);
+        let s = scene(
+            vec![Material::default()],
+            vec![object(ball.clone(), 1)],
+            vec![],
+        );
         let e = rasterize_view(&s, &view, &no_shadows()).unwrap_err();
         assert!(e.contains("material 1"), "{e}");
         // 1×1 image.
         let mut s = scene(vec![Material::default()], vec![object(ball, 0)], vec![]);
-        s.cameras
-            .push(scene_camera_from_look_at(&look_at(1, 1, 30.0, [0.0, 0.0, -3.0], [0.0; 3])));
+        s.cameras.push(scene_camera_from_look_at(&look_at(
+            1,
+            1,
+            30.0,
+            [0.0, 0.0, -3.0],
+            [0.0; 3],
+        )));
         let out = rasterize(&s, 0, &RasterOptions::default()).unwrap();
         assert_eq!(out.hits, 1);
         assert!((out.depth[0] - 2.0).abs() < 1e-6);
@@ -4022,7 +4070,10 @@ mod tests {
         let Some(Value::Image(color)) = out.take("color") else {
             panic!("no colour")
         };
-        assert_eq!((color.width(), color.height(), color.channels()), (40, 30, Channels::Rgb));
+        assert_eq!(
+            (color.width(), color.height(), color.channels()),
+            (40, 30, Channels::Rgb)
+        );
         let Some(Value::Integer(hits)) = out.take("hits") else {
             panic!("no hits")
         };
