@@ -22,7 +22,9 @@
 //! et al. 2007; Schlick Fresnel with `F0 = albedo`; height-correlated Smith G2; `α =
 //! roughness²`, a perfect mirror when `α < 10⁻³`), and a smooth dielectric with weight
 //! `(1 − metalness)·transmission` (exact Fresnel, Snell refraction, total internal reflection,
-//! transmission tinted by `albedo` and scaled by `1/η²` for radiance). A metalness-0 opaque
+//! transmission tinted by `albedo` and scaled by `1/η²` for radiance; every dielectric surface
+//! separates air, on its front side, from the material, so nested dielectrics are not tracked
+//! as media). A metalness-0 opaque
 //! material is purely Lambertian (there is no dielectric coat), so an albedo-1 surface
 //! conserves energy exactly. Textures (albedo, normal, roughness, metalness, emission) are
 //! point-sampled with [`TextureSampler::sample`] at the hit's uv (the filter of the texture
@@ -31,7 +33,8 @@
 //! **Integrators.** `whitted` (Whitted 1980): emission, direct lighting from point,
 //! directional and area lights with shadow rays through the non-delta lobes (an area light is
 //! sampled once per camera sample, uniformly on the parallelogram), recursion into perfect
-//! mirrors and dielectrics up to `max_depth`; diffuse surfaces do not gather environment light.
+//! mirrors and dielectrics up to `max_depth` levels, skipping branches that carry less than
+//! 10⁻⁶ of the pixel (Hall & Greenberg 1983); diffuse surfaces do not gather environment light.
 //! `path` (Kajiya 1986): cosine-weighted diffuse sampling (Malley), GGX visible-normal sampling
 //! (Heitz 2018), next-event estimation to every point, directional and area light (one sample
 //! each), the power heuristic between light and BSDF sampling for area lights (Veach 1997);
@@ -70,6 +73,9 @@ const TILE: usize = 16;
 
 /// Below this GGX `α` the metal lobe is a perfect mirror.
 const MIN_ALPHA: f64 = 1e-3;
+
+/// Whitted branches contributing less than this fraction of the pixel are not traced.
+const WHITTED_MIN_WEIGHT: f64 = 1e-6;
 
 /// Relative offset of analytic hit points (`2⁻⁴⁰` of the coordinate magnitude).
 const ANALYTIC_OFFSET: f64 = 1.0 / (1u64 << 40) as f64;
@@ -462,7 +468,10 @@ fn check_material(i: usize, m: &Material) -> Result<(), String> {
         format!("material {i} (`{}`)", m.name)
     };
     if !m.albedo.iter().all(|v| (0.0..=1.0).contains(v)) {
-        return Err(format!("{name}: albedo must be in [0, 1], got {:?}", m.albedo));
+        return Err(format!(
+            "{name}: albedo must be in [0, 1], got {:?}",
+            m.albedo
+        ));
     }
     for (field, v) in [
         ("roughness", m.roughness),
@@ -897,9 +906,9 @@ impl TraceScene {
         }
         if lights {
             for (i, l) in self.area_lights.iter().enumerate() {
-                if let Some((t, s, u)) =
-                    intersect_parallelogram(origin, direction, l.corner, l.edge_u, l.edge_v, 0.0, t_best)
-                {
+                if let Some((t, s, u)) = intersect_parallelogram(
+                    origin, direction, l.corner, l.edge_u, l.edge_v, 0.0, t_best,
+                ) {
                     t_best = t;
                     best = Some(Candidate::Light(i, t, s, u));
                 }
@@ -973,34 +982,34 @@ impl TraceScene {
         let back = offset_ray_origin(p32, ng32.map(|v| -v));
         let (b0, b1, b2) = (f64::from(b0), f64::from(b1), f64::from(b2));
         let mut ns = ng;
-        if info.has_normals {
-            if let Some(normals) = &mesh.normals {
-                let [n0, n1, n2] = tri.map(|k| w(normals[k as usize]));
-                let n = add(add(scale(n0, b0), scale(n1, b1)), scale(n2, b2));
-                if let Some(n) = normalize(n).filter(|n| dot(*n, ng) > 0.0) {
-                    ns = n;
-                }
+        if info.has_normals
+            && let Some(normals) = &mesh.normals
+        {
+            let [n0, n1, n2] = tri.map(|k| w(normals[k as usize]));
+            let n = add(add(scale(n0, b0), scale(n1, b1)), scale(n2, b2));
+            if let Some(n) = normalize(n).filter(|n| dot(*n, ng) > 0.0) {
+                ns = n;
             }
         }
         let mut uv = [0.0, 0.0];
         let mut dpdu = None;
         let mut dpdv = None;
-        if info.has_uvs {
-            if let Some(uvs) = &mesh.uvs {
-                let [t0, t1, t2] = tri.map(|k| uvs[k as usize].map(f64::from));
-                uv = [
-                    b0 * t0[0] + b1 * t1[0] + b2 * t2[0],
-                    b0 * t0[1] + b1 * t1[1] + b2 * t2[1],
-                ];
-                // Lengyel's tangent from the uv gradients of the triangle.
-                let (du1, dv1) = (t1[0] - t0[0], t1[1] - t0[1]);
-                let (du2, dv2) = (t2[0] - t0[0], t2[1] - t0[1]);
-                let det = du1 * dv2 - du2 * dv1;
-                if det != 0.0 && det.is_finite() {
-                    let r = 1.0 / det;
-                    dpdu = Some(scale(sub(scale(e1, dv2), scale(e2, dv1)), r));
-                    dpdv = Some(scale(sub(scale(e2, du1), scale(e1, du2)), r));
-                }
+        if info.has_uvs
+            && let Some(uvs) = &mesh.uvs
+        {
+            let [t0, t1, t2] = tri.map(|k| uvs[k as usize].map(f64::from));
+            uv = [
+                b0 * t0[0] + b1 * t1[0] + b2 * t2[0],
+                b0 * t0[1] + b1 * t1[1] + b2 * t2[1],
+            ];
+            // Lengyel's tangent from the uv gradients of the triangle.
+            let (du1, dv1) = (t1[0] - t0[0], t1[1] - t0[1]);
+            let (du2, dv2) = (t2[0] - t0[0], t2[1] - t0[1]);
+            let det = du1 * dv2 - du2 * dv1;
+            if det != 0.0 && det.is_finite() {
+                let r = 1.0 / det;
+                dpdu = Some(scale(sub(scale(e1, dv2), scale(e2, dv1)), r));
+                dpdv = Some(scale(sub(scale(e2, du1), scale(e1, du2)), r));
             }
         }
         let (tangent, bitangent) = tangent_frame(ns, dpdu, dpdv);
@@ -1070,7 +1079,8 @@ impl TraceScene {
                 scale: s,
                 ..
             } => {
-                let to_obj = |x: Vec3| scale(mat3_mul_transposed(rotation, sub(x, *translation)), 1.0 / s);
+                let to_obj =
+                    |x: Vec3| scale(mat3_mul_transposed(rotation, sub(x, *translation)), 1.0 / s);
                 let mut po = to_obj(p);
                 // One Newton step back onto the surface along the gradient.
                 let g = quadric_gradient(coefficients, po);
@@ -1147,7 +1157,17 @@ fn intersect_analytic(shape: &Analytic, o: Vec3, d: Vec3, t_max: f64) -> Option<
             tangent,
             bitangent,
             half_extent,
-        } => intersect_plane(o, d, *point, *normal, *tangent, *bitangent, *half_extent, 0.0, t_max),
+        } => intersect_plane(
+            o,
+            d,
+            *point,
+            *normal,
+            *tangent,
+            *bitangent,
+            *half_extent,
+            0.0,
+            t_max,
+        ),
         Analytic::Quadric {
             coefficients,
             min,
@@ -1230,7 +1250,13 @@ impl TraceScene {
                 normal = n;
             }
         }
-        let clamp01 = |v: f64| if v.is_finite() { v.clamp(0.0, 1.0) } else { 0.0 };
+        let clamp01 = |v: f64| {
+            if v.is_finite() {
+                v.clamp(0.0, 1.0)
+            } else {
+                0.0
+            }
+        };
         Some(ShadingPoint {
             albedo: albedo.map(clamp01),
             roughness: clamp01(roughness),
@@ -1485,7 +1511,10 @@ impl TraceOptions {
             return Err(format!("`spp` must be 1..=65536, got {}", self.spp));
         }
         if self.max_depth > 64 {
-            return Err(format!("`max_depth` must be 0..=64, got {}", self.max_depth));
+            return Err(format!(
+                "`max_depth` must be 0..=64, got {}",
+                self.max_depth
+            ));
         }
         if self.rr_depth > 64 {
             return Err(format!("`rr_depth` must be 0..=64, got {}", self.rr_depth));
@@ -1541,7 +1570,14 @@ impl Integration<'_> {
     /// Direct light at a hit through the non-delta lobes: every point and directional light,
     /// one uniform sample on every area light (MIS-weighted against BSDF sampling with the
     /// power heuristic when `mis`).
-    fn direct(&self, hit: &SurfaceHit, bsdf: &Bsdf, wo: Vec3, rng: &mut SampleRng, mis: bool) -> Vec3 {
+    fn direct(
+        &self,
+        hit: &SurfaceHit,
+        bsdf: &Bsdf,
+        wo: Vec3,
+        rng: &mut SampleRng,
+        mis: bool,
+    ) -> Vec3 {
         let s = self.scene;
         let p = hit.position;
         let mut l = [0.0; 3];
@@ -1614,8 +1650,19 @@ impl Integration<'_> {
         }
     }
 
-    /// Whitted radiance along a ray.
-    fn whitted(&self, origin: Vec3, direction: Vec3, depth: u32, rng: &mut SampleRng) -> Vec3 {
+    /// Whitted radiance along a ray whose contribution to the pixel is scaled by `weight`
+    /// (the largest channel of the product of reflectances and transmittances above it).
+    /// Branches whose weight would fall below [`WHITTED_MIN_WEIGHT`] are not traced (Hall &
+    /// Greenberg's adaptive tree-depth control, 1983), which bounds the otherwise exponential
+    /// reflection/refraction tree.
+    fn whitted(
+        &self,
+        origin: Vec3,
+        direction: Vec3,
+        depth: u32,
+        weight: f64,
+        rng: &mut SampleRng,
+    ) -> Vec3 {
         let s = self.scene;
         let Some(hit) = s.intersect(origin, direction, f64::INFINITY, true) else {
             return s.escaped(direction);
@@ -1639,23 +1686,34 @@ impl Integration<'_> {
         if depth >= self.options.max_depth {
             return l;
         }
-        if bsdf.w_metal > 0.0 && bsdf.metal_is_delta() {
-            if let Some(wi) = bsdf.mirror(wo) {
-                let r = self.whitted(hit.spawn_origin(wi), wi, depth + 1, rng);
-                l = add(l, scale(mul(bsdf.mirror_reflectance(wo), r), bsdf.w_metal));
+        let branch = |l: &mut Vec3, wi: Vec3, factor: Vec3, rng: &mut SampleRng| {
+            let w = weight * factor[0].max(factor[1]).max(factor[2]);
+            if w >= WHITTED_MIN_WEIGHT {
+                let r = self.whitted(hit.spawn_origin(wi), wi, depth + 1, w, rng);
+                *l = add(*l, mul(factor, r));
             }
+        };
+        if bsdf.w_metal > 0.0
+            && bsdf.metal_is_delta()
+            && let Some(wi) = bsdf.mirror(wo)
+        {
+            let factor = scale(bsdf.mirror_reflectance(wo), bsdf.w_metal);
+            branch(&mut l, wi, factor, rng);
         }
         if bsdf.w_glass > 0.0 {
             let (f, t, transmitted) = bsdf.dielectric(wo);
-            if f > 0.0 {
-                if let Some(wi) = bsdf.mirror(wo) {
-                    let r = self.whitted(hit.spawn_origin(wi), wi, depth + 1, rng);
-                    l = madd(l, r, bsdf.w_glass * f);
-                }
+            if f > 0.0
+                && let Some(wi) = bsdf.mirror(wo)
+            {
+                branch(&mut l, wi, [bsdf.w_glass * f; 3], rng);
             }
             if let Some(wt) = t {
-                let r = self.whitted(hit.spawn_origin(wt), wt, depth + 1, rng);
-                l = add(l, scale(mul(transmitted, r), bsdf.w_glass * (1.0 - f)));
+                branch(
+                    &mut l,
+                    wt,
+                    scale(transmitted, bsdf.w_glass * (1.0 - f)),
+                    rng,
+                );
             }
         }
         l
@@ -1730,7 +1788,7 @@ impl Integration<'_> {
 
     fn radiance(&self, origin: Vec3, direction: Vec3, rng: &mut SampleRng) -> Vec3 {
         match self.options.integrator {
-            Integrator::Whitted => self.whitted(origin, direction, 0, rng),
+            Integrator::Whitted => self.whitted(origin, direction, 0, 1.0, rng),
             Integrator::Path => self.path(origin, direction, rng),
         }
     }
@@ -1832,8 +1890,7 @@ pub fn render_trace(
                             (jx, jy)
                         };
                         let lens = concentric_disk(rng.next_f64(), rng.next_f64());
-                        let (o, d) =
-                            view.lens_ray(x as f64 + jx - 0.5, y as f64 + jy - 0.5, lens);
+                        let (o, d) = view.lens_ray(x as f64 + jx - 0.5, y as f64 + jy - 0.5, lens);
                         let l = integration.radiance(o, d, &mut rng);
                         // A non-finite sample (never expected) is dropped rather than
                         // poisoning the pixel.
@@ -1908,18 +1965,18 @@ params! {
         /// `path` (Kajiya path tracing, NEE + MIS) or `whitted`. Default `path`.
         integrator: Integrator = Integrator::Path,
         /// Samples per pixel, 1..=65536. Default 16.
-        spp: u32 = 16,
+        spp: u32 = 16 => [min = 1, max = 65536],
         /// Most scattering events per path (Whitted: reflection/refraction levels), 0..=64.
         /// Default 8.
-        max_depth: u32 = 8,
+        max_depth: u32 = 8 => [max = 64],
         /// Bounces before Russian roulette (path tracer), 0..=64. Default 3.
-        rr_depth: u32 = 3,
+        rr_depth: u32 = 3 => [max = 64],
         /// Seed of the per-pixel random streams. Default 0.
         seed: u64 = 0,
         /// Tone curve of the colour output: `none`, `reinhard` or `aces`. Default `none`.
         tone_map: ToneMap = ToneMap::None,
         /// Exposure, stops (colour × 2^exposure before the curve). Default 0.
-        exposure: f64 = 0.0,
+        exposure: f64 = 0.0 => [min = -64.0, max = 64.0, unit = "stops"],
         /// Radiance of escaping rays when the scene has no environment light, linear RGB.
         /// Default black.
         background: [f64; 3] = [0.0, 0.0, 0.0],
@@ -1937,8 +1994,7 @@ pub struct Trace {
 impl Op for Trace {
     type Params = TraceParams;
     const ID: &'static str = "render.trace";
-    const SUMMARY: &'static str =
-        "Ray traces a scene (Whitted or path tracing with NEE and MIS): colour, depth, normals, ids, rays.";
+    const SUMMARY: &'static str = "Ray traces a scene (Whitted or path tracing with NEE and MIS): colour, depth, normals, ids, rays.";
     const DOC: &'static str = r#"
 Renders camera `camera` of `scene` by ray tracing. Mesh objects are merged in world space
 under one BVH (watertight triangle test); spheres, planes and quadrics are intersected exactly
@@ -1953,7 +2009,8 @@ Emission is one-sided. Area lights are one-sided emitting parallelograms that al
 
 `integrator: "whitted"` (Whitted 1980): emission, direct light from point, directional and
 area lights (one area sample per camera sample) with shadow rays, mirror reflection and
-refraction up to `max_depth` levels; escaping rays see the environment (or `background`).
+refraction up to `max_depth` levels (branches carrying < 1e-6 of the pixel are skipped, Hall &
+Greenberg 1983); escaping rays see the environment (or `background`).
 `integrator: "path"` (Kajiya 1986): cosine-weighted diffuse and GGX visible-normal sampling
 (Heitz 2018), next-event estimation to every light, the power heuristic (Veach 1997) between
 light and BSDF sampling for area lights; emissive surfaces and the environment are found by
@@ -2004,7 +2061,11 @@ Example:
                 PortType::Image,
                 "RGB f32 world-space shading normal, 0 on a miss.",
             ),
-            PortSpec::new("ids", PortType::Image, "f32 gray object index, −1 on a miss."),
+            PortSpec::new(
+                "ids",
+                PortType::Image,
+                "f32 gray object index, −1 on a miss.",
+            ),
             PortSpec::new(
                 "ray_origins",
                 PortType::Image,
@@ -2015,7 +2076,11 @@ Example:
                 PortType::Image,
                 "RGB f32 pixel-centre primary ray unit directions.",
             ),
-            PortSpec::new("hits", PortType::Integer, "Pixels whose centre ray hit an object."),
+            PortSpec::new(
+                "hits",
+                PortType::Integer,
+                "Pixels whose centre ray hit an object.",
+            ),
         ]
     }
 
@@ -2079,6 +2144,7 @@ impl Operator for Trace {
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
     use crate::render::primitives::bumpy_icosphere;
@@ -2169,7 +2235,14 @@ mod tests {
             materials: vec![material],
             objects: vec![object(shape, 0)],
             lights: vec![environment(1.0)],
-            cameras: vec![camera(24, 24, 40.0, [0.0, 0.0, -4.0], [0.0; 3], [0.0, 1.0, 0.0])],
+            cameras: vec![camera(
+                24,
+                24,
+                40.0,
+                [0.0, 0.0, -4.0],
+                [0.0; 3],
+                [0.0, 1.0, 0.0],
+            )],
         };
         trace_scene(&scene, 0, [0.0; 3], &options(Integrator::Path, spp)).unwrap()
     }
@@ -2195,7 +2268,8 @@ mod tests {
         for (name, shape) in shapes {
             // Albedo 1: every pixel, object or environment, is exactly the environment.
             let img = furnace(shape.clone(), lambert([1.0; 3]), 8);
-            let mean = img.color.iter().map(|&v| f64::from(v)).sum::<f64>() / img.color.len() as f64;
+            let mean =
+                img.color.iter().map(|&v| f64::from(v)).sum::<f64>() / img.color.len() as f64;
             let worst = img
                 .color
                 .iter()
@@ -2214,7 +2288,9 @@ mod tests {
                 .flat_map(|&(x, y)| pixel(&img, x, y))
                 .map(|v| (v - 0.5).abs() / 0.5)
                 .fold(0.0, f64::max);
-            eprintln!("furnace {name}, albedo 0.5: mean {mean:.6}, worst pixel rel. error {worst:.2e}");
+            eprintln!(
+                "furnace {name}, albedo 0.5: mean {mean:.6}, worst pixel rel. error {worst:.2e}"
+            );
             assert!((mean - 0.5).abs() < 0.005, "{name}: mean {mean}");
             assert!(worst < 0.01, "{name}: {worst}");
         }
@@ -2254,7 +2330,15 @@ mod tests {
             let max = img.color.iter().map(|&v| f64::from(v)).fold(0.0, f64::max);
             // The directional albedo E(μ) = ∫ f cos dω of the BRDF by quadrature (independent
             // of the sampler), at each interior pixel's viewing cosine.
-            let view = View::new(&camera(24, 24, 40.0, [0.0, 0.0, -4.0], [0.0; 3], [0.0, 1.0, 0.0])).unwrap();
+            let view = View::new(&camera(
+                24,
+                24,
+                40.0,
+                [0.0, 0.0, -4.0],
+                [0.0; 3],
+                [0.0, 1.0, 0.0],
+            ))
+            .unwrap();
             let alpha = f64::from(roughness).powi(2);
             let mut expected = 0.0;
             for &(x, y) in &inside {
@@ -2271,7 +2355,10 @@ mod tests {
             assert!(max <= 1.0 + 1e-6, "roughness {roughness}: {max}");
             assert!(mean <= 1.0, "roughness {roughness}: {mean}");
             if roughness >= 0.5 {
-                assert!((mean - expected).abs() < 0.015 * expected, "{mean} vs {expected}");
+                assert!(
+                    (mean - expected).abs() < 0.015 * expected,
+                    "{mean} vs {expected}"
+                );
             }
             means.push(mean);
         }
@@ -2296,7 +2383,14 @@ mod tests {
             materials: vec![glass],
             objects: vec![object(sphere([0.0; 3], 1.0), 0)],
             lights: vec![environment(1.0)],
-            cameras: vec![camera(24, 24, 40.0, [0.0, 0.0, -4.0], [0.0; 3], [0.0, 1.0, 0.0])],
+            cameras: vec![camera(
+                24,
+                24,
+                40.0,
+                [0.0, 0.0, -4.0],
+                [0.0; 3],
+                [0.0, 1.0, 0.0],
+            )],
         };
         let mut opts = options(Integrator::Whitted, 1);
         opts.max_depth = 16;
@@ -2326,6 +2420,47 @@ mod tests {
         assert!((mean - 1.0).abs() < 0.02, "{mean}");
     }
 
+    #[test]
+    fn whitted_tree_is_bounded_at_depth_64() {
+        // Three concentric glass spheres at max_depth 64: a full split at every interface would
+        // be 2⁶⁴ rays per pixel; weight pruning keeps it small. Every interface conserves
+        // energy (each dielectric surface separates air from glass), so the furnace stays at 1
+        // up to truncation.
+        let glass = Material {
+            albedo: [1.0; 3],
+            transmission: 1.0,
+            ior: 1.5,
+            ..Material::default()
+        };
+        let scene = Scene {
+            materials: vec![glass],
+            objects: [1.0, 0.7, 0.4]
+                .iter()
+                .map(|&r| object(sphere([0.0; 3], r), 0))
+                .collect(),
+            lights: vec![environment(1.0)],
+            cameras: vec![camera(
+                12,
+                12,
+                40.0,
+                [0.0, 0.0, -4.0],
+                [0.0; 3],
+                [0.0, 1.0, 0.0],
+            )],
+        };
+        let mut opts = options(Integrator::Whitted, 1);
+        opts.max_depth = 64;
+        let img = trace_scene(&scene, 0, [0.0; 3], &opts).unwrap();
+        let inside = interior(&img);
+        let mean = mean_over(&img, &inside);
+        let min = inside
+            .iter()
+            .flat_map(|&(x, y)| pixel(&img, x, y))
+            .fold(f64::INFINITY, f64::min);
+        eprintln!("nested glass, Whitted depth 64: mean {mean:.5}, darkest {min:.5}");
+        assert!((mean - 1.0).abs() < 0.01 && min > 0.9, "{mean} {min}");
+    }
+
     /// ρ/π · I cos θ / r² at the pixel-centre hit on the plane y = y0.
     fn point_light_expected(
         view: &View,
@@ -2349,7 +2484,12 @@ mod tests {
         let [cx, cy, cz] = center;
         let p = |x: f64, z: f64| [(cx + x) as f32, cy as f32, (cz + z) as f32];
         Shape::Mesh(Arc::new(Mesh {
-            positions: vec![p(-half, -half), p(half, -half), p(half, half), p(-half, half)],
+            positions: vec![
+                p(-half, -half),
+                p(half, -half),
+                p(half, half),
+                p(-half, half),
+            ],
             // Counter-clockwise seen from +y.
             triangles: vec![[0, 2, 1], [0, 3, 2]],
             ..Mesh::default()
@@ -2385,14 +2525,17 @@ mod tests {
                 let mut worst = 0.0f64;
                 for y in 0..h {
                     for x in 0..w {
-                        let e = point_light_expected(&view, x, y, offset[1], light, intensity, albedo);
+                        let e =
+                            point_light_expected(&view, x, y, offset[1], light, intensity, albedo);
                         let got = pixel(&img, x, y);
                         for k in 0..3 {
                             worst = worst.max((got[k] - e[k]).abs() / e[k]);
                         }
                     }
                 }
-                eprintln!("{name} at {offset:?}, point light, {integrator:?}: worst rel. error {worst:.2e}");
+                eprintln!(
+                    "{name} at {offset:?}, point light, {integrator:?}: worst rel. error {worst:.2e}"
+                );
                 assert!(worst < tol, "{name} {integrator:?}: {worst}");
                 // A directional light: ρ/π E cos θ everywhere.
                 scene.lights = vec![Light::Directional {
@@ -2406,7 +2549,10 @@ mod tests {
                     for y in 0..h {
                         for x in 0..w {
                             let got = pixel(&img, x, y)[k];
-                            assert!((got - e).abs() < 1e-3 * e, "{name} {integrator:?} {got} vs {e}");
+                            assert!(
+                                (got - e).abs() < 1e-3 * e,
+                                "{name} {integrator:?} {got} vs {e}"
+                            );
                         }
                     }
                 }
@@ -2431,10 +2577,16 @@ mod tests {
         for &offset in &[0.0, 1.0e5, -3.0e5] {
             for trial in 0..20 {
                 // A random triangle and a sphere, far from the origin.
-                let n = normalize([rng.next_f64() - 0.5, rng.next_f64() - 0.5, rng.next_f64() - 0.5]).unwrap();
+                let n = normalize([
+                    rng.next_f64() - 0.5,
+                    rng.next_f64() - 0.5,
+                    rng.next_f64() - 0.5,
+                ])
+                .unwrap();
                 let (t, b) = orthonormal_basis(n);
                 let c = [offset + 3.0, offset - 1.0, offset + 2.0];
-                let corner = |a: f64, bb: f64| add(c, add(scale(t, a), scale(b, bb))).map(|v| v as f32);
+                let corner =
+                    |a: f64, bb: f64| add(c, add(scale(t, a), scale(b, bb))).map(|v| v as f32);
                 let mesh = Mesh {
                     positions: vec![corner(-5.0, -5.0), corner(5.0, -5.0), corner(0.0, 5.0)],
                     triangles: vec![[0, 1, 2]],
@@ -2448,11 +2600,21 @@ mod tests {
                 let ts = TraceScene::new(&scene, [0.0; 3]).unwrap();
                 let eye = madd(c, n, 20.0 * if trial % 2 == 0 { 1.0 } else { -1.0 });
                 let d = normalize(sub(madd(c, t, 0.3 * rng.next_f64()), eye)).unwrap();
-                let hit = ts.intersect(eye, d, f64::INFINITY, true).expect("hits the triangle");
+                let hit = ts
+                    .intersect(eye, d, f64::INFINITY, true)
+                    .expect("hits the triangle");
                 for _ in 0..50 {
-                    let w = normalize([rng.next_f64() - 0.5, rng.next_f64() - 0.5, rng.next_f64() - 0.5]).unwrap();
+                    let w = normalize([
+                        rng.next_f64() - 0.5,
+                        rng.next_f64() - 0.5,
+                        rng.next_f64() - 0.5,
+                    ])
+                    .unwrap();
                     let o = hit.spawn_origin(w);
-                    assert!(ts.intersect(o, w, f64::INFINITY, true).is_none(), "offset {offset}");
+                    assert!(
+                        ts.intersect(o, w, f64::INFINITY, true).is_none(),
+                        "offset {offset}"
+                    );
                     assert!(!ts.occluded(o, w, 1e9));
                 }
                 // A sphere: outward rays escape, inward rays cross the whole chord.
@@ -2463,10 +2625,17 @@ mod tests {
                 };
                 let ts = TraceScene::new(&scene, [0.0; 3]).unwrap();
                 let eye = madd(c, n, 10.0);
-                let hit = ts.intersect(eye, scale(n, -1.0), f64::INFINITY, true).unwrap();
+                let hit = ts
+                    .intersect(eye, scale(n, -1.0), f64::INFINITY, true)
+                    .unwrap();
                 assert!((hit.t - 9.0).abs() < 1e-9, "{}", hit.t);
                 for _ in 0..50 {
-                    let w = normalize([rng.next_f64() - 0.5, rng.next_f64() - 0.5, rng.next_f64() - 0.5]).unwrap();
+                    let w = normalize([
+                        rng.next_f64() - 0.5,
+                        rng.next_f64() - 0.5,
+                        rng.next_f64() - 0.5,
+                    ])
+                    .unwrap();
                     let o = hit.spawn_origin(w);
                     let again = ts.intersect(o, w, f64::INFINITY, true);
                     let cos = dot(w, hit.geometric_normal);
@@ -2510,7 +2679,12 @@ mod tests {
         let radiance = 2.0;
         let corner = [-0.5, 1.0, -0.5];
         let (eu, ev) = ([1.0, 0.0, 0.0], [0.0, 0.0, 1.0]);
-        let square = [corner, add(corner, eu), add(add(corner, eu), ev), add(corner, ev)];
+        let square = [
+            corner,
+            add(corner, eu),
+            add(add(corner, eu), ev),
+            add(corner, ev),
+        ];
         // Looking at the floor under the light from the side, below the emitter.
         let cam = camera(6, 6, 8.0, [3.0, 0.6, 0.2], [0.2, 0.0, 0.1], [0.0, 1.0, 0.0]);
         let view = View::new(&cam).unwrap();
@@ -2541,7 +2715,9 @@ mod tests {
                 }
             }
             let mean = ratio_sum / 36.0;
-            eprintln!("area light, {integrator:?}: mean ratio to Lambert's formula {mean:.4}, worst pixel {worst:.3}");
+            eprintln!(
+                "area light, {integrator:?}: mean ratio to Lambert's formula {mean:.4}, worst pixel {worst:.3}"
+            );
             assert!((mean - 1.0).abs() < 0.02, "{integrator:?}: {mean}");
             assert!(worst < 0.08, "{integrator:?}: {worst}");
         }
@@ -2589,7 +2765,11 @@ mod tests {
                         inside += 1;
                         assert_eq!(got, [3.0, 2.0, 1.0], "{integrator:?} ({x},{y})");
                     } else if (0..25).all(|k| {
-                        !sees((k % 5) as f64 / 4.0 - 0.5, (k / 5) as f64 / 4.0 - 0.5, 1.2 * r)
+                        !sees(
+                            (k % 5) as f64 / 4.0 - 0.5,
+                            (k / 5) as f64 / 4.0 - 0.5,
+                            1.2 * r,
+                        )
                     }) {
                         outside += 1;
                         assert_eq!(got, [0.0; 3], "{integrator:?} ({x},{y})");
@@ -2623,7 +2803,14 @@ mod tests {
                 direction: [0.0, -1.0, 0.0],
                 irradiance: [PI as f32; 3],
             }],
-            cameras: vec![camera(20, 20, 20.0, [0.0, 5.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0])],
+            cameras: vec![camera(
+                20,
+                20,
+                20.0,
+                [0.0, 5.0, 0.0],
+                [0.0; 3],
+                [0.0, 0.0, 1.0],
+            )],
         }
     }
 
@@ -2655,7 +2842,10 @@ mod tests {
                     let want = if k == 0 { ta } else { tb };
                     let got = pixel(&img, x, y);
                     for c in 0..3 {
-                        assert!((got[c] - f64::from(want[c])).abs() < 1e-5, "({x},{y}) {got:?}");
+                        assert!(
+                            (got[c] - f64::from(want[c])).abs() < 1e-5,
+                            "({x},{y}) {got:?}"
+                        );
                     }
                 }
             }
@@ -2663,15 +2853,33 @@ mod tests {
         assert!(checked > 100, "{checked}");
         // A flat normal map (0.5, 0.5, 1) changes nothing; a tilted one tilts the normal by α
         // towards the tangent (+x here) and dims the light by cos α.
-        let base = trace_scene(&floor_scene(lambert([0.5; 3])), 0, [0.0; 3], &options(Integrator::Whitted, 1)).unwrap();
+        let base = trace_scene(
+            &floor_scene(lambert([0.5; 3])),
+            0,
+            [0.0; 3],
+            &options(Integrator::Whitted, 1),
+        )
+        .unwrap();
         let mut m = lambert([0.5; 3]);
         m.normal_texture = Some(texture(1, 1, vec![[0.5, 0.5, 1.0]]));
-        let flat = trace_scene(&floor_scene(m.clone()), 0, [0.0; 3], &options(Integrator::Whitted, 1)).unwrap();
+        let flat = trace_scene(
+            &floor_scene(m.clone()),
+            0,
+            [0.0; 3],
+            &options(Integrator::Whitted, 1),
+        )
+        .unwrap();
         assert_eq!(base, flat);
         let alpha = 0.5f64;
         let texel = [0.5 + 0.5 * alpha.sin(), 0.5, 0.5 + 0.5 * alpha.cos()].map(|v| v as f32);
         m.normal_texture = Some(texture(1, 1, vec![texel]));
-        let tilted = trace_scene(&floor_scene(m), 0, [0.0; 3], &options(Integrator::Whitted, 1)).unwrap();
+        let tilted = trace_scene(
+            &floor_scene(m),
+            0,
+            [0.0; 3],
+            &options(Integrator::Whitted, 1),
+        )
+        .unwrap();
         let n_texel = texel.map(|v| 2.0 * f64::from(v) - 1.0);
         let n_len = length(n_texel);
         for i in 0..400 {
@@ -2692,11 +2900,23 @@ mod tests {
             ..Material::default()
         };
         m.metalness_texture = Some(texture(1, 1, vec![[0.0; 3]]));
-        let img = trace_scene(&floor_scene(m.clone()), 0, [0.0; 3], &options(Integrator::Whitted, 1)).unwrap();
+        let img = trace_scene(
+            &floor_scene(m.clone()),
+            0,
+            [0.0; 3],
+            &options(Integrator::Whitted, 1),
+        )
+        .unwrap();
         assert!((img.color[0] - 0.5).abs() < 1e-6);
         m.metalness_texture = None;
         m.roughness_texture = Some(texture(1, 1, vec![[0.0; 3]]));
-        let img = trace_scene(&floor_scene(m), 0, [0.0; 3], &options(Integrator::Whitted, 1)).unwrap();
+        let img = trace_scene(
+            &floor_scene(m),
+            0,
+            [0.0; 3],
+            &options(Integrator::Whitted, 1),
+        )
+        .unwrap();
         assert!(img.color.iter().all(|&v| v == 0.0));
         let mut m = Material {
             albedo: [0.0; 3],
@@ -2725,7 +2945,11 @@ mod tests {
             let img = trace_scene(&scene, 0, [9.0; 3], &options(Integrator::Path, 2)).unwrap();
             for i in 0..16 {
                 for c in 0..3 {
-                    assert_eq!(img.color[3 * i + c], 2.0 * want[c], "the background is unused");
+                    assert_eq!(
+                        img.color[3 * i + c],
+                        2.0 * want[c],
+                        "the background is unused"
+                    );
                 }
             }
         }
@@ -2737,7 +2961,14 @@ mod tests {
                 radiance: [1.0; 3],
                 map: Some(texture(1, 1, vec![[1.0; 3]])),
             }],
-            cameras: vec![camera(8, 8, 40.0, [0.0, 0.0, -4.0], [0.0; 3], [0.0, 1.0, 0.0])],
+            cameras: vec![camera(
+                8,
+                8,
+                40.0,
+                [0.0, 0.0, -4.0],
+                [0.0; 3],
+                [0.0, 1.0, 0.0],
+            )],
         };
         let img = trace_scene(&scene, 0, [0.0; 3], &options(Integrator::Path, 2)).unwrap();
         assert!(img.color.iter().all(|&v| (v - 1.0).abs() < 1e-6));
@@ -2747,16 +2978,44 @@ mod tests {
     fn ray_sphere_hits() {
         let c = [0.0; 3];
         let z = [0.0, 0.0, 1.0];
-        assert_eq!(intersect_sphere([0.0, 0.0, -5.0], z, c, 1.0, 0.0, f64::INFINITY), Some(4.0));
+        assert_eq!(
+            intersect_sphere([0.0, 0.0, -5.0], z, c, 1.0, 0.0, f64::INFINITY),
+            Some(4.0)
+        );
         // From inside: the far side.
-        assert_eq!(intersect_sphere([0.0; 3], z, c, 1.0, 0.0, f64::INFINITY), Some(1.0));
-        assert_eq!(intersect_sphere([0.0, 0.0, 0.5], z, c, 1.0, 0.0, f64::INFINITY), Some(0.5));
+        assert_eq!(
+            intersect_sphere([0.0; 3], z, c, 1.0, 0.0, f64::INFINITY),
+            Some(1.0)
+        );
+        assert_eq!(
+            intersect_sphere([0.0, 0.0, 0.5], z, c, 1.0, 0.0, f64::INFINITY),
+            Some(0.5)
+        );
         // Behind the ray, beyond t_max, a miss.
-        assert_eq!(intersect_sphere([0.0, 0.0, 5.0], z, c, 1.0, 0.0, f64::INFINITY), None);
-        assert_eq!(intersect_sphere([0.0, 0.0, -5.0], z, c, 1.0, 0.0, 3.9), None);
-        assert_eq!(intersect_sphere([0.0, 2.0, -5.0], z, c, 1.0, 0.0, f64::INFINITY), None);
+        assert_eq!(
+            intersect_sphere([0.0, 0.0, 5.0], z, c, 1.0, 0.0, f64::INFINITY),
+            None
+        );
+        assert_eq!(
+            intersect_sphere([0.0, 0.0, -5.0], z, c, 1.0, 0.0, 3.9),
+            None
+        );
+        assert_eq!(
+            intersect_sphere([0.0, 2.0, -5.0], z, c, 1.0, 0.0, f64::INFINITY),
+            None
+        );
         // Unnormalized directions give t in their units.
-        assert_eq!(intersect_sphere([0.0, 0.0, -5.0], [0.0, 0.0, 2.0], c, 1.0, 0.0, f64::INFINITY), Some(2.0));
+        assert_eq!(
+            intersect_sphere(
+                [0.0, 0.0, -5.0],
+                [0.0, 0.0, 2.0],
+                c,
+                1.0,
+                0.0,
+                f64::INFINITY
+            ),
+            Some(2.0)
+        );
         // Grazing: y = 1 − δ hits at z = −√(2δ − δ²); exactly tangent touches; beyond misses.
         for delta in [1e-4f64, 1e-8, 1e-12] {
             let y = 1.0 - delta;
@@ -2768,12 +3027,21 @@ mod tests {
             let tol = 8.0 * f64::EPSILON / (2.0 * delta).sqrt() + 1e-14;
             assert!((t - expected).abs() < tol, "δ {delta}: {t} vs {expected}");
         }
-        assert_eq!(intersect_sphere([0.0, 1.0, -5.0], z, c, 1.0, 0.0, f64::INFINITY), Some(5.0));
-        assert_eq!(intersect_sphere([0.0, 1.0 + 1e-9, -5.0], z, c, 1.0, 0.0, f64::INFINITY), None);
+        assert_eq!(
+            intersect_sphere([0.0, 1.0, -5.0], z, c, 1.0, 0.0, f64::INFINITY),
+            Some(5.0)
+        );
+        assert_eq!(
+            intersect_sphere([0.0, 1.0 + 1e-9, -5.0], z, c, 1.0, 0.0, f64::INFINITY),
+            None
+        );
         // A unit sphere 10⁵ away: exact along the axis, and on slanted rays the hit point lies
         // on the sphere to 1e-9 (the textbook discriminant loses ~1e-6 here).
         let far = [1.0e5, 0.0, 0.0];
-        assert_eq!(intersect_sphere([0.0; 3], [1.0, 0.0, 0.0], far, 1.0, 0.0, f64::INFINITY), Some(1.0e5 - 1.0));
+        assert_eq!(
+            intersect_sphere([0.0; 3], [1.0, 0.0, 0.0], far, 1.0, 0.0, f64::INFINITY),
+            Some(1.0e5 - 1.0)
+        );
         let mut rng = SampleRng::new(3, 0, 0);
         for _ in 0..200 {
             let (r, phi) = (0.999 * rng.next_f64().sqrt(), 2.0 * PI * rng.next_f64());
@@ -2789,7 +3057,9 @@ mod tests {
     fn ray_plane_hits() {
         let n = [0.0, 1.0, 0.0];
         let (t, b) = orthonormal_basis(n);
-        let hit = |o: Vec3, d: Vec3, h: f64| intersect_plane(o, d, [0.0; 3], n, t, b, h, 0.0, f64::INFINITY);
+        let hit = |o: Vec3, d: Vec3, h: f64| {
+            intersect_plane(o, d, [0.0; 3], n, t, b, h, 0.0, f64::INFINITY)
+        };
         let down = [0.0, -1.0, 0.0];
         let (tt, uv) = hit([0.3, 2.0, -0.4], down, 1.0).unwrap();
         assert_eq!(tt, 2.0);
@@ -2806,9 +3076,28 @@ mod tests {
         assert!(hit([0.0, 1.0, 0.0], [1.0, 0.0, 0.0], f64::INFINITY).is_none());
         assert!(hit([0.0, 1.0, 0.0], [0.0, 1.0, 0.0], f64::INFINITY).is_none());
         // Parallelogram (area light): inside and outside.
-        let p = intersect_parallelogram([0.25, 2.0, 0.75], down, [0.0; 3], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], 0.0, 9.0);
+        let p = intersect_parallelogram(
+            [0.25, 2.0, 0.75],
+            down,
+            [0.0; 3],
+            [1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0],
+            0.0,
+            9.0,
+        );
         assert_eq!(p, Some((2.0, 0.25, 0.75)));
-        assert!(intersect_parallelogram([1.25, 2.0, 0.5], down, [0.0; 3], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], 0.0, 9.0).is_none());
+        assert!(
+            intersect_parallelogram(
+                [1.25, 2.0, 0.5],
+                down,
+                [0.0; 3],
+                [1.0, 0.0, 0.0],
+                [0.0, 0.0, 1.0],
+                0.0,
+                9.0
+            )
+            .is_none()
+        );
     }
 
     #[test]
@@ -2839,18 +3128,47 @@ mod tests {
         let cylinder = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, -1.0];
         let (lo, hi) = ([-2.0, -2.0, -1.0], [2.0, 2.0, 1.0]);
         let x = [1.0, 0.0, 0.0];
-        assert_eq!(intersect_quadric([-5.0, 0.0, 0.0], x, &cylinder, lo, hi, 0.0, f64::INFINITY), Some(4.0));
-        assert_eq!(intersect_quadric([-5.0, 0.0, 2.0], x, &cylinder, lo, hi, 0.0, f64::INFINITY), None);
-        assert_eq!(intersect_quadric([0.5, 0.0, 0.0], x, &cylinder, lo, hi, 0.0, f64::INFINITY), Some(0.5));
+        assert_eq!(
+            intersect_quadric([-5.0, 0.0, 0.0], x, &cylinder, lo, hi, 0.0, f64::INFINITY),
+            Some(4.0)
+        );
+        assert_eq!(
+            intersect_quadric([-5.0, 0.0, 2.0], x, &cylinder, lo, hi, 0.0, f64::INFINITY),
+            None
+        );
+        assert_eq!(
+            intersect_quadric([0.5, 0.0, 0.0], x, &cylinder, lo, hi, 0.0, f64::INFINITY),
+            Some(0.5)
+        );
         // Along the axis the quadratic and linear terms vanish: no hit.
-        assert_eq!(intersect_quadric([0.0, 0.0, -5.0], [0.0, 0.0, 1.0], &cylinder, lo, hi, 0.0, f64::INFINITY), None);
+        assert_eq!(
+            intersect_quadric(
+                [0.0, 0.0, -5.0],
+                [0.0, 0.0, 1.0],
+                &cylinder,
+                lo,
+                hi,
+                0.0,
+                f64::INFINITY
+            ),
+            None
+        );
         // A slanted ray entering the box through the cap hits the wall at z = 0.5.
         let d = normalize([1.0, 0.0, 1.0]).unwrap();
-        let t = intersect_quadric([0.5, 0.0, 0.0], d, &cylinder, lo, hi, 0.0, f64::INFINITY).unwrap();
+        let t =
+            intersect_quadric([0.5, 0.0, 0.0], d, &cylinder, lo, hi, 0.0, f64::INFINITY).unwrap();
         assert!((t - 0.5 * 2f64.sqrt()).abs() < 1e-12);
         // The paraboloid z = x² + y² hit from above: the quadratic term is 0 (linear case).
         let paraboloid = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -0.5, 0.0];
-        let t = intersect_quadric([0.5, 0.0, 5.0], [0.0, 0.0, -1.0], &paraboloid, [-9.0; 3], [9.0; 3], 0.0, f64::INFINITY);
+        let t = intersect_quadric(
+            [0.5, 0.0, 5.0],
+            [0.0, 0.0, -1.0],
+            &paraboloid,
+            [-9.0; 3],
+            [9.0; 3],
+            0.0,
+            f64::INFINITY,
+        );
         assert_eq!(t, Some(4.75));
         let g = quadric_gradient(&paraboloid, [0.5, 0.0, 0.25]);
         assert_eq!(g, [1.0, 0.0, -1.0]);
@@ -2870,7 +3188,7 @@ mod tests {
                 objects: vec![SceneObject {
                     name: "s".into(),
                     shape,
-                    world_from_object: pose.clone(),
+                    world_from_object: pose,
                     scale: 2.0,
                     material: 0,
                 }],
@@ -2925,7 +3243,7 @@ mod tests {
                     normal: [0.0, 0.0, 1.0],
                     half_extent: 1.0,
                 },
-                world_from_object: pose.clone(),
+                world_from_object: pose,
                 scale: 2.0,
                 material: 0,
             }],
@@ -2933,26 +3251,38 @@ mod tests {
         };
         let ts = TraceScene::new(&scene, [0.0; 3]).unwrap();
         let down = [0.0, -1.0, 0.0];
-        let hit = ts.intersect([1.9, 5.0, -1.9], down, f64::INFINITY, true).unwrap();
+        let hit = ts
+            .intersect([1.9, 5.0, -1.9], down, f64::INFINITY, true)
+            .unwrap();
         assert!((hit.t - 4.0).abs() < 1e-12);
         for k in 0..3 {
             assert!((hit.geometric_normal[k] - [0.0, -1.0, 0.0][k]).abs() < 1e-12);
         }
-        assert!(ts.intersect([2.1, 5.0, 0.0], down, f64::INFINITY, true).is_none());
+        assert!(
+            ts.intersect([2.1, 5.0, 0.0], down, f64::INFINITY, true)
+                .is_none()
+        );
         // A posed, scaled icosphere against the analytic sphere under the same transform:
         // depth within the tessellation error, world-space shading normals close.
         let pose = Pose {
             rotation: [0.9, -0.3, 0.2, 0.25],
             translation: [0.5, -0.2, 0.3],
         };
-        let cam = camera(32, 32, 50.0, [0.5, -0.2, -6.0], [0.5, -0.2, 0.3], [0.0, 1.0, 0.0]);
+        let cam = camera(
+            32,
+            32,
+            50.0,
+            [0.5, -0.2, -6.0],
+            [0.5, -0.2, 0.3],
+            [0.0, 1.0, 0.0],
+        );
         let render = |shape: Shape| {
             let scene = Scene {
                 materials: vec![lambert([0.5; 3])],
                 objects: vec![SceneObject {
                     name: "s".into(),
                     shape,
-                    world_from_object: pose.clone(),
+                    world_from_object: pose,
                     scale: 1.5,
                     material: 0,
                 }],
@@ -2986,7 +3316,8 @@ mod tests {
     #[test]
     fn depth_matches_raycast_on_a_mesh() {
         let mesh = Arc::new(bumpy_icosphere(3, 0.05, 2));
-        let la = LookAtCamera::new(64, 48, 50.0, [0.3, 0.2, -3.0], [0.0; 3], [0.0, 1.0, 0.0]).unwrap();
+        let la =
+            LookAtCamera::new(64, 48, 50.0, [0.3, 0.2, -3.0], [0.0; 3], [0.0, 1.0, 0.0]).unwrap();
         let bvh = build_bvh(mesh.clone(), &BvhOptions::default()).unwrap();
         let (depth, hits) = raycast_depth(&bvh, &la);
         let scene = Scene {
@@ -3071,7 +3402,8 @@ mod tests {
 
     #[test]
     fn thin_lens_focus_and_circle_of_confusion() {
-        let la = LookAtCamera::new(49, 49, 30.0, [0.0; 3], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]).unwrap();
+        let la =
+            LookAtCamera::new(49, 49, 30.0, [0.0; 3], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]).unwrap();
         let f = la.focal_px;
         let mut cam = scene_camera_from_look_at(&la);
         cam.aperture_radius = 0.2;
@@ -3111,8 +3443,13 @@ mod tests {
         let r_coc = f * 0.2 * (1.0f64 / 4.0 - 1.0 / z).abs();
         let (m, flux) = moments(&render(z));
         let r_measured = (2.0 * (m - square_m)).sqrt();
-        eprintln!("off focus: CoC radius {r_measured:.3} px vs analytic {r_coc:.3} px, flux {flux:.3}");
-        assert!((r_measured - r_coc).abs() < 0.03 * r_coc, "{r_measured} vs {r_coc}");
+        eprintln!(
+            "off focus: CoC radius {r_measured:.3} px vs analytic {r_coc:.3} px, flux {flux:.3}"
+        );
+        assert!(
+            (r_measured - r_coc).abs() < 0.03 * r_coc,
+            "{r_measured} vs {r_coc}"
+        );
         assert!((flux - 9.0).abs() < 0.3, "{flux}");
     }
 
@@ -3153,7 +3490,14 @@ mod tests {
                 },
                 environment(0.2),
             ],
-            cameras: vec![camera(37, 29, 50.0, [0.0, 0.5, -4.0], [0.0; 3], [0.0, 1.0, 0.0])],
+            cameras: vec![camera(
+                37,
+                29,
+                50.0,
+                [0.0, 0.5, -4.0],
+                [0.0; 3],
+                [0.0, 1.0, 0.0],
+            )],
         }
     }
 
@@ -3176,7 +3520,10 @@ mod tests {
             let mut other = opts;
             other.seed = 1;
             let reseeded = run(3, other);
-            assert_ne!(one.color, reseeded.color, "{integrator:?}: the seed changes the noise");
+            assert_ne!(
+                one.color, reseeded.color,
+                "{integrator:?}: the seed changes the noise"
+            );
             assert_eq!(one.depth, reseeded.depth);
             // Same mean brightness within noise.
             let mean = |v: &[f32]| v.iter().map(|&x| f64::from(x)).sum::<f64>() / v.len() as f64;
@@ -3208,7 +3555,14 @@ mod tests {
             materials: vec![lambert([0.5; 3])],
             objects: vec![object(sphere([0.0; 3], 1.0), 0)],
             lights: vec![environment(1.0)],
-            cameras: vec![camera(1, 1, 10.0, [0.0, 0.0, -3.0], [0.0; 3], [0.0, 1.0, 0.0])],
+            cameras: vec![camera(
+                1,
+                1,
+                10.0,
+                [0.0, 0.0, -3.0],
+                [0.0; 3],
+                [0.0, 1.0, 0.0],
+            )],
         };
         let img = trace_scene(&one, 0, [0.0; 3], &options(Integrator::Path, 4)).unwrap();
         assert_eq!((img.width, img.height, img.hits), (1, 1, 1));
@@ -3234,7 +3588,11 @@ mod tests {
         assert!(e.contains("spp"), "{e}");
         let mut bad = one.clone();
         bad.materials[0].roughness = f32::NAN;
-        assert!(trace_scene(&bad, 0, [0.0; 3], &TraceOptions::default()).unwrap_err().contains("roughness"));
+        assert!(
+            trace_scene(&bad, 0, [0.0; 3], &TraceOptions::default())
+                .unwrap_err()
+                .contains("roughness")
+        );
         let mut bad = one.clone();
         bad.objects[0].shape = sphere([0.0; 3], -1.0);
         assert!(trace_scene(&bad, 0, [0.0; 3], &TraceOptions::default()).is_err());
@@ -3242,7 +3600,11 @@ mod tests {
         assert!(trace_scene(&bad, 0, [0.0; 3], &TraceOptions::default()).is_err());
         let mut bad = one.clone();
         bad.objects[0].scale = 0.0;
-        assert!(trace_scene(&bad, 0, [0.0; 3], &TraceOptions::default()).unwrap_err().contains("scale"));
+        assert!(
+            trace_scene(&bad, 0, [0.0; 3], &TraceOptions::default())
+                .unwrap_err()
+                .contains("scale")
+        );
         let mut bad = one.clone();
         bad.lights.push(Light::Area {
             corner: [0.0; 3],
@@ -3250,10 +3612,16 @@ mod tests {
             edge_v: [2.0, 0.0, 0.0],
             radiance: [1.0; 3],
         });
-        assert!(trace_scene(&bad, 0, [0.0; 3], &TraceOptions::default()).unwrap_err().contains("parallel"));
+        assert!(
+            trace_scene(&bad, 0, [0.0; 3], &TraceOptions::default())
+                .unwrap_err()
+                .contains("parallel")
+        );
         assert!(trace_scene(&one, 0, [f64::NAN, 0.0, 0.0], &TraceOptions::default()).is_err());
-        let mut opts = TraceOptions::default();
-        opts.max_depth = 65;
+        let mut opts = TraceOptions {
+            max_depth: 65,
+            ..TraceOptions::default()
+        };
         assert!(opts.validate().is_err());
         opts.max_depth = 8;
         opts.exposure = f64::INFINITY;
@@ -3268,7 +3636,10 @@ mod tests {
             assert!((c - 0.5).abs() < 1e-12);
         }
         let g = tone_map([1.0; 3], ToneMap::Reinhard, 1.0);
-        assert!((g[0] - 2.0 / 3.0).abs() < 1e-12, "one stop doubles the input");
+        assert!(
+            (g[0] - 2.0 / 3.0).abs() < 1e-12,
+            "one stop doubles the input"
+        );
         let c = tone_map([0.4, 0.2, 0.1], ToneMap::Reinhard, 0.0);
         assert!((c[0] / c[1] - 2.0).abs() < 1e-12 && (c[1] / c[2] - 2.0).abs() < 1e-12);
         let l = 0.2126 * 0.4 + 0.7152 * 0.2 + 0.0722 * 0.1;
@@ -3283,7 +3654,10 @@ mod tests {
             assert!(y >= prev);
             prev = y;
         }
-        assert_eq!(tone_map([3.0, 0.5, 0.0], ToneMap::None, -1.0), [1.5, 0.25, 0.0]);
+        assert_eq!(
+            tone_map([3.0, 0.5, 0.0], ToneMap::None, -1.0),
+            [1.5, 0.25, 0.0]
+        );
     }
 
     #[test]
@@ -3325,13 +3699,23 @@ mod tests {
             element: None,
         };
         let out = op.run(&ctx, &Inputs::new(&specs, &values)).unwrap();
-        for name in ["color", "depth", "normals", "ids", "ray_origins", "ray_directions"] {
+        for name in [
+            "color",
+            "depth",
+            "normals",
+            "ids",
+            "ray_origins",
+            "ray_directions",
+        ] {
             assert!(out.names().any(|n| n == name), "{name}");
         }
         let mut out = out;
         match out.take("color") {
             Some(Value::Image(img)) => {
-                assert_eq!((img.width(), img.height(), img.channels()), (37, 29, Channels::Rgb));
+                assert_eq!(
+                    (img.width(), img.height(), img.channels()),
+                    (37, 29, Channels::Rgb)
+                );
             }
             other => panic!("{other:?}"),
         }
@@ -3339,16 +3723,20 @@ mod tests {
             Some(Value::Integer(h)) => assert!(h > 100),
             other => panic!("{other:?}"),
         }
-        assert!(Trace::new(TraceParams {
-            spp: 0,
-            ..TraceParams::default()
-        })
-        .is_err());
-        assert!(Trace::new(TraceParams {
-            background: [-1.0, 0.0, 0.0],
-            ..TraceParams::default()
-        })
-        .is_err());
+        assert!(
+            Trace::new(TraceParams {
+                spp: 0,
+                ..TraceParams::default()
+            })
+            .is_err()
+        );
+        assert!(
+            Trace::new(TraceParams {
+                background: [-1.0, 0.0, 0.0],
+                ..TraceParams::default()
+            })
+            .is_err()
+        );
         let bad = TraceParams {
             camera: 3,
             ..TraceParams::default()
