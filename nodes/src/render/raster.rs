@@ -449,7 +449,7 @@ fn quadratic_roots(a: f64, b: f64, c: f64) -> [Option<f64>; 2] {
         return [Some(-c / b), None];
     }
     let disc = b * b - 4.0 * a * c;
-    if !(disc >= 0.0) {
+    if disc.is_nan() || disc < 0.0 {
         return [None, None];
     }
     let s = disc.sqrt();
@@ -473,7 +473,7 @@ impl Analytic {
                 let b = dot(oc, d);
                 let closest = sub(oc, mul(d, b));
                 let disc = radius * radius - dot(closest, closest);
-                if !(disc >= 0.0) {
+                if disc.is_nan() || disc < 0.0 {
                     return [None, None];
                 }
                 let c = dot(oc, oc) - radius * radius;
@@ -572,7 +572,7 @@ impl Analytic {
             .into_iter()
             .flatten()
             .find(|h| {
-                if !(h.t >= ray.t_min) {
+                if h.t.is_nan() || h.t < ray.t_min {
                     return false;
                 }
                 let front = dot(h.n, ray.dir) < 0.0;
@@ -706,6 +706,8 @@ struct MeshGeom<'a> {
 }
 
 #[derive(Debug)]
+// Few per scene (one per object), so the size difference does not matter.
+#[allow(clippy::large_enum_variant)]
 enum Geom<'a> {
     Mesh(MeshGeom<'a>),
     Analytic(Analytic),
@@ -778,8 +780,9 @@ pub fn validate_scene(scene: &Scene) -> Result<(), String> {
         }
         let q = o.world_from_object.rotation;
         let qn = q.iter().map(|v| v * v).sum::<f64>();
-        if !(q.iter().all(|v| v.is_finite()) && qn > 0.0)
-            || !finite3(&o.world_from_object.translation)
+        if !(q.iter().all(|v| v.is_finite())
+            && qn > 0.0
+            && finite3(&o.world_from_object.translation))
         {
             return Err(format!(
                 "object {i} (`{name}`): `world_from_object` must be finite with a non-zero \
@@ -791,7 +794,7 @@ pub fn validate_scene(scene: &Scene) -> Result<(), String> {
                 validate_mesh(m).map_err(|e| format!("object {i} (`{name}`): {e}"))?
             }
             Shape::Sphere { center, radius } => {
-                if !finite3(center) || !(*radius > 0.0 && radius.is_finite()) {
+                if !(finite3(center) && *radius > 0.0 && radius.is_finite()) {
                     return Err(format!(
                         "object {i} (`{name}`): a sphere needs a finite centre and a finite \
                          radius > 0, got radius {radius}"
@@ -809,7 +812,7 @@ pub fn validate_scene(scene: &Scene) -> Result<(), String> {
                          non-zero normal"
                     ));
                 }
-                if !(*half_extent > 0.0) {
+                if half_extent.is_nan() || *half_extent <= 0.0 {
                     return Err(format!(
                         "object {i} (`{name}`): a plane's `half_extent` must be > 0 (or +inf), \
                          got {half_extent}"
@@ -826,7 +829,7 @@ pub fn validate_scene(scene: &Scene) -> Result<(), String> {
                         "object {i} (`{name}`): quadric coefficients must be finite"
                     ));
                 }
-                if (0..3).any(|k| !(min[k] <= max[k])) {
+                if (0..3).any(|k| min[k].is_nan() || max[k].is_nan() || min[k] > max[k]) {
                     return Err(format!(
                         "object {i} (`{name}`): a quadric's clip box needs min ≤ max on every \
                          axis (infinite bounds allowed, NaN not)"
@@ -1667,6 +1670,8 @@ impl ShadowMap {
 // ---------------------------------------------------------------------------------------------
 // Lights and the environment.
 
+// Few per scene (one per light), so the size difference does not matter.
+#[allow(clippy::large_enum_variant)]
 /// A light ready for shading.
 #[derive(Debug, Clone)]
 enum DirectLight {
@@ -3173,7 +3178,7 @@ mod tests {
                 // Skip samples within 2 % of a texel of a checker edge.
                 let near_edge = uv.iter().any(|&c| {
                     let f = (2.0 * c).fract();
-                    f < 0.02 || f > 0.98
+                    !(0.02..=0.98).contains(&f)
                 });
                 if near_edge {
                     continue;
