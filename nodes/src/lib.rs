@@ -15,6 +15,7 @@ pub mod matching;
 pub mod optimize;
 pub mod render;
 pub mod segment;
+pub mod sfm;
 pub mod video;
 
 use ocellus_engine::op::{Registry, RegistryError};
@@ -26,6 +27,9 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<capture::moving::MovingShapes>()?;
     registry.register::<capture::moving::Select>()?;
     registry.register::<capture::render::CaptureRender>()?;
+    registry.register::<sfm::pairs::MatchPairs>()?;
+    registry.register::<sfm::tracks::TracksOp>()?;
+    registry.register::<sfm::incremental::Incremental>()?;
     registry.register::<filter::grayscale::Grayscale>()?;
     registry.register::<filter::color::ConvertColor>()?;
     registry.register::<filter::convert::ConvertType>()?;

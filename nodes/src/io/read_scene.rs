@@ -279,6 +279,7 @@ impl Ctx<'_> {
             &[
                 "image",
                 "checker",
+                "noise",
                 "wrap",
                 "filter",
                 "border",
@@ -286,16 +287,17 @@ impl Ctx<'_> {
                 "uv_scale",
             ],
         )?;
-        let image = match (f.get("image"), f.get("checker")) {
-            (Some(p), None) => {
+        let image = match (f.get("image"), f.get("checker"), f.get("noise")) {
+            (Some(p), None, None) => {
                 let path = self.file(p, "image")?;
                 read_image(&path, &DecodeLimits::default()).map_err(|e| self.err(p, e))?
             }
-            (None, Some(c)) => self.checker(c)?,
+            (None, Some(c), None) => self.checker(c)?,
+            (None, None, Some(c)) => self.noise(c)?,
             _ => {
                 return Err(self.err(
                     v,
-                    format!("{what} needs exactly one of `image` or `checker`"),
+                    format!("{what} needs exactly one of `image`, `checker` or `noise`"),
                 ));
             }
         };
@@ -365,6 +367,29 @@ impl Ctx<'_> {
         let a = f.get("a").map_or(Ok([0.9; 3]), |c| self.color(c, "a"))?;
         let b = f.get("b").map_or(Ok([0.1; 3]), |c| self.color(c, "b"))?;
         checker_image(size, cells.min(size), a, b).map_err(|e| self.err(v, e))
+    }
+
+    /// Generated value noise: `size × size` RGB f32 texels blending `a` and `b` by a sum of
+    /// `octaves` lattice-noise layers, the first with `cells × cells` lattice cells, each next
+    /// one at twice the frequency and half the amplitude; seeded by `seed`, tileable.
+    fn noise(&self, v: V<'_>) -> Result<Image, String> {
+        let f = self.fields(v, "noise", &["cells", "size", "octaves", "seed", "a", "b"])?;
+        let cells = f
+            .get("cells")
+            .map_or(Ok(8), |c| self.uint(c, "cells", 1..=4096))? as usize;
+        let size = f
+            .get("size")
+            .map_or(Ok(256), |c| self.uint(c, "size", 1..=8192))? as usize;
+        let octaves = f
+            .get("octaves")
+            .map_or(Ok(4), |c| self.uint(c, "octaves", 1..=16))? as usize;
+        let seed = f
+            .get("seed")
+            .map_or(Ok(0), |c| self.uint(c, "seed", 0..=i64::from(u32::MAX)))?
+            as u64;
+        let a = f.get("a").map_or(Ok([0.9; 3]), |c| self.color(c, "a"))?;
+        let b = f.get("b").map_or(Ok([0.1; 3]), |c| self.color(c, "b"))?;
+        noise_image(size, cells.min(size), octaves, seed, a, b).map_err(|e| self.err(v, e))
     }
 
     fn material(&mut self, v: V<'_>, index: usize) -> Result<Material, String> {
@@ -835,6 +860,73 @@ pub fn checker_image(size: usize, cells: usize, a: [f32; 3], b: [f32; 3]) -> Res
     Image::new(size, size, Channels::Rgb, PixelData::F32(data)).map_err(|e| e.to_string())
 }
 
+/// A hash of lattice point `(x, y)` of octave `o` to [0, 1).
+fn lattice_value(seed: u64, o: usize, x: usize, y: usize) -> f32 {
+    let mut z = seed
+        .wrapping_add((o as u64) << 48)
+        .wrapping_add((y as u64) << 24)
+        .wrapping_add(x as u64)
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^= z >> 31;
+    (z >> 40) as f32 / (1u64 << 24) as f32
+}
+
+/// `size × size` RGB f32 value noise (see the scene format's `noise` texture): octave `o` has
+/// `cells·2ᵒ` lattice cells per side (capped at `size`), smoothstep-interpolated, amplitude
+/// `2⁻ᵒ`; the sum is normalized to [0, 1] by its range and blends `a` (0) to `b` (1). The
+/// lattice wraps, so the texture tiles.
+pub fn noise_image(
+    size: usize,
+    cells: usize,
+    octaves: usize,
+    seed: u64,
+    a: [f32; 3],
+    b: [f32; 3],
+) -> Result<Image, String> {
+    if size == 0 || cells == 0 {
+        return Err("noise needs size and cells ≥ 1".into());
+    }
+    let mut sum = vec![0f32; size * size];
+    let mut amplitude = 1.0f32;
+    for o in 0..octaves {
+        let n = (cells << o.min(20)).min(size);
+        for y in 0..size {
+            let fy = (y as f32 + 0.5) * n as f32 / size as f32 - 0.5;
+            let y0 = fy.floor();
+            let ty = fy - y0;
+            let ty = ty * ty * (3.0 - 2.0 * ty);
+            let y0 = (y0 as i64).rem_euclid(n as i64) as usize;
+            let y1 = (y0 + 1) % n;
+            for x in 0..size {
+                let fx = (x as f32 + 0.5) * n as f32 / size as f32 - 0.5;
+                let x0 = fx.floor();
+                let tx = fx - x0;
+                let tx = tx * tx * (3.0 - 2.0 * tx);
+                let x0 = (x0 as i64).rem_euclid(n as i64) as usize;
+                let x1 = (x0 + 1) % n;
+                let v = |xx, yy| lattice_value(seed, o, xx, yy);
+                let top = v(x0, y0) * (1.0 - tx) + v(x1, y0) * tx;
+                let bottom = v(x0, y1) * (1.0 - tx) + v(x1, y1) * tx;
+                sum[y * size + x] += amplitude * (top * (1.0 - ty) + bottom * ty);
+            }
+        }
+        amplitude *= 0.5;
+    }
+    let lo = sum.iter().copied().fold(f32::INFINITY, f32::min);
+    let hi = sum.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    let range = if hi > lo { hi - lo } else { 1.0 };
+    let mut data = Vec::with_capacity(size * size * 3);
+    for s in sum {
+        let t = (s - lo) / range;
+        for c in 0..3 {
+            data.push(a[c] + (b[c] - a[c]) * t);
+        }
+    }
+    Image::new(size, size, Channels::Rgb, PixelData::F32(data)).map_err(|e| e.to_string())
+}
+
 /// The rotation `Rz·Ry·Rx` (about x first, then y, then z; fixed axes), row-major.
 pub fn euler_xyz_deg(deg: [f64; 3]) -> [f64; 9] {
     let [a, b, c] = deg.map(f64::to_radians);
@@ -961,7 +1053,10 @@ Materials: `albedo` (linear RGB), `roughness`, `metalness`, `specular`, `transmi
 unlit, flat, gouraud, lambert (default), phong, blinn_phong, pbr; textures `albedo_texture`,
 `normal_texture`, `roughness_texture`, `metalness_texture`, `emission_texture`, each
 `(image: "file.png")` (read as linear values, no sRGB decoding) or a generated
-`(checker: (cells, size, a, b))`, with `wrap` (repeat, mirrored_repeat, clamp_to_edge,
+`(checker: (cells, size, a, b))` or value noise `(noise: (cells, size, octaves, seed, a, b))`
+(`octaves` layers of smoothly interpolated seeded lattice noise, the first with `cells` cells
+per side, each next at twice the frequency and half the amplitude, blending `a` to `b`), with
+`wrap` (repeat, mirrored_repeat, clamp_to_edge,
 clamp_to_border), `filter` (nearest, bilinear, trilinear, anisotropic), `border` (RGBA),
 `max_anisotropy` (1–16, default 8) and `uv_scale`. With no materials the scene gets one default
 material, which objects without `material` use (otherwise they use the first).
@@ -1107,6 +1202,30 @@ mod tests {
             (at(0, 0), at(1, 1), at(2, 0), at(2, 2), at(3, 1)),
             (1.0, 1.0, 0.0, 1.0, 0.0)
         );
+    }
+
+    #[test]
+    fn noise_spans_both_colours_is_seeded_and_tiles() {
+        let img = noise_image(64, 4, 3, 7, [0.0; 3], [1.0; 3]).unwrap();
+        let PixelData::F32(d) = img.data() else {
+            panic!()
+        };
+        let lo = d.iter().copied().fold(f32::INFINITY, f32::min);
+        let hi = d.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        assert_eq!((lo, hi), (0.0, 1.0));
+        // Same seed, same texture; another seed, another texture.
+        assert_eq!(img, noise_image(64, 4, 3, 7, [0.0; 3], [1.0; 3]).unwrap());
+        assert_ne!(img, noise_image(64, 4, 3, 8, [0.0; 3], [1.0; 3]).unwrap());
+        // Tileable: the jump across the wrap is no larger than the largest jump inside.
+        let at = |x: usize, y: usize| d[(y * 64 + x) * 3];
+        let inner = (0..64)
+            .flat_map(|y| (0..63).map(move |x| (x, y)))
+            .map(|(x, y)| (at(x + 1, y) - at(x, y)).abs())
+            .fold(0.0, f32::max);
+        let wrap = (0..64)
+            .map(|y| (at(0, y) - at(63, y)).abs())
+            .fold(0.0, f32::max);
+        assert!(wrap <= inner * 1.01, "wrap {wrap} inner {inner}");
     }
 
     #[test]
