@@ -233,7 +233,7 @@ pub fn parse_images(
         };
         let mut line = Line::new(file, number, content);
         let tokens = line.rest();
-        if tokens.len() % 3 != 0 {
+        if !tokens.len().is_multiple_of(3) {
             return Err(line.error(format!(
                 "POINTS2D of image {id} has {} numbers, not a multiple of 3 (X Y POINT3D_ID)",
                 tokens.len()
@@ -303,7 +303,7 @@ pub fn parse_points(
         }
         let error_px = line.float("ERROR")?;
         let tokens = line.rest();
-        if tokens.len() % 2 != 0 {
+        if !tokens.len().is_multiple_of(2) {
             return Err(line.error(format!(
                 "TRACK of point {id} has {} numbers, not pairs (IMAGE_ID POINT2D_IDX)",
                 tokens.len()
