@@ -115,6 +115,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<io::read_correspondences::ReadCorrespondences>()?;
     registry.register::<io::read_camera::ReadCamera>()?;
     registry.register::<io::read_bal::ReadBal>()?;
+    registry.register::<io::read_colmap::ReadColmap>()?;
+    registry.register::<io::read_poses::ReadPoses>()?;
     registry.register::<io::read_mesh::ReadMesh>()?;
     registry.register::<io::read_scene::ReadScene>()?;
     registry.register::<optimize::affine_init::AffineInit>()?;
@@ -139,6 +141,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<matching::patch::PatchMatch>()?;
     registry.register::<matching::draw::DrawMatches>()?;
     registry.register::<analyze::match_accuracy::MatchAccuracy>()?;
+    registry.register::<analyze::reconstruction_error::ReconstructionError>()?;
+    registry.register::<analyze::reconstruction_points::ReconstructionPoints>()?;
     registry.register::<geometry::calibrate::Calibrate>()?;
     registry.register::<geometry::projection::CalibrateDlt>()?;
     registry.register::<geometry::rectify::Undistort>()?;

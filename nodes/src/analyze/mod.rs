@@ -5,4 +5,6 @@ pub mod evaluate;
 pub mod histogram;
 pub mod match_accuracy;
 pub mod quality;
+pub mod reconstruction_error;
+pub mod reconstruction_points;
 pub mod stats;

@@ -48,7 +48,8 @@ starts with `.`; only regular files (or links to them) count.
 The files are sorted in natural order: runs of digits compare as numbers, so frame2 comes
 before frame10 (ties broken by plain text order), then `start`, `step` and `limit` select
 frames[start], frames[start + step], … Each is decoded as `io.read_image` does (format by
-content, bit depth kept), in parallel, into `frames` in order; `count` is their number.
+content, bit depth kept), in parallel, into `frames` in order; `count` is their number and
+`names` their file names (without the folder), in the same order.
 Frames may differ in size and format (an operator mapped over the list sees each on its own).
 
 Errors: no file matches (naming the pattern and the folder), the selection is empty (start
@@ -75,6 +76,11 @@ Example:
                 "The decoded frames, in natural file-name order.",
             ),
             PortSpec::new("count", PortType::Integer, "Number of frames."),
+            PortSpec::new(
+                "names",
+                PortType::Text.list_of(),
+                "The file name (without its folder) of each frame, in the order of `frames`.",
+            ),
         ]
     }
 
@@ -116,9 +122,19 @@ impl Operator for Sequence {
             }
         }
         let count = frames.len() as i64;
+        let names = files
+            .iter()
+            .map(|path| {
+                let name = path
+                    .file_name()
+                    .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+                Value::Text(name.into())
+            })
+            .collect();
         Ok(Outputs::new()
             .with("frames", Value::list(PortType::Image, frames))
-            .with("count", Value::Integer(count)))
+            .with("count", Value::Integer(count))
+            .with("names", Value::list(PortType::Text, names)))
     }
 
     /// The selected names and contents decide the result.
@@ -454,6 +470,18 @@ mod tests {
             run(&op(pattern.clone(), 1, 2, Some(2))).unwrap(),
             (vec![2, 10], 2)
         );
+        let mut out = op(pattern.clone(), 1, 2, None)
+            .run(&ctx(), &Inputs::new(&[], &[]))
+            .unwrap();
+        assert_eq!(
+            out.take("names"),
+            Some(Value::list(
+                PortType::Text,
+                ["f2.png", "f10.png", "f20.png"]
+                    .map(|n| Value::Text(n.into()))
+                    .to_vec()
+            ))
+        );
         assert_eq!(
             run(&op(dir.0.join("f?.png"), 0, 1, None)).unwrap(),
             (vec![1, 2, 3], 3)
@@ -482,6 +510,19 @@ mod tests {
         assert_eq!(list.items[0], Value::image(frame(1)));
         assert_eq!(list.items[1], Value::image(frame(2)));
         assert_eq!(list.items[2], Value::image(big));
+        let Some(Value::List(names)) = out.take("names") else {
+            panic!("expected names");
+        };
+        assert_eq!(names.element, PortType::Text);
+        let names: Vec<&str> = names
+            .items
+            .iter()
+            .map(|v| match v {
+                Value::Text(t) => &**t,
+                _ => panic!("expected text"),
+            })
+            .collect();
+        assert_eq!(names, ["a.tif", "b.png", "c.PPM"]);
     }
 
     #[test]
