@@ -862,14 +862,16 @@ pub fn checker_image(size: usize, cells: usize, a: [f32; 3], b: [f32; 3]) -> Res
 
 /// A hash of lattice point `(x, y)` of octave `o` to [0, 1).
 fn lattice_value(seed: u64, o: usize, x: usize, y: usize) -> f32 {
-    let mut z = seed
-        .wrapping_add((o as u64) << 48)
-        .wrapping_add((y as u64) << 24)
-        .wrapping_add(x as u64)
-        .wrapping_mul(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^= z >> 31;
+    // SplitMix64's finalizer, applied to the seed first so that different seeds give
+    // unrelated lattices (not translates of one another), then to the seeded lattice point.
+    let mix = |mut z: u64| {
+        z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    };
+    let point = ((o as u64) << 48) ^ ((y as u64) << 24) ^ x as u64;
+    let z = mix(mix(seed) ^ point);
     (z >> 40) as f32 / (1u64 << 24) as f32
 }
 
@@ -1216,6 +1218,19 @@ mod tests {
         // Same seed, same texture; another seed, another texture.
         assert_eq!(img, noise_image(64, 4, 3, 7, [0.0; 3], [1.0; 3]).unwrap());
         assert_ne!(img, noise_image(64, 4, 3, 8, [0.0; 3], [1.0; 3]).unwrap());
+        // Seeds are not lattice translates of each other: no shift of seed 8's texture by
+        // whole lattice cells (16 texels) reproduces seed 7's.
+        let other = noise_image(64, 4, 3, 8, [0.0; 3], [1.0; 3]).unwrap();
+        let PixelData::F32(e) = other.data() else {
+            panic!()
+        };
+        for (dx, dy) in [(16, 0), (0, 16), (48, 0), (16, 16)] {
+            let same = (0..64 * 64).all(|i| {
+                let (x, y) = (i % 64, i / 64);
+                d[i * 3] == e[(((y + dy) % 64) * 64 + (x + dx) % 64) * 3]
+            });
+            assert!(!same, "seed 8 shifted by ({dx}, {dy}) equals seed 7");
+        }
         // Tileable: the jump across the wrap is no larger than the largest jump inside.
         let at = |x: usize, y: usize| d[(y * 64 + x) * 3];
         let inner = (0..64)
