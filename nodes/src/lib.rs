@@ -15,6 +15,7 @@ pub mod matching;
 pub mod optimize;
 pub mod render;
 pub mod segment;
+pub mod sfm;
 pub mod video;
 
 use ocellus_engine::op::{Registry, RegistryError};
@@ -145,6 +146,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<geometry::pnp::SolvePnp>()?;
     registry.register::<geometry::triangulate::Triangulate>()?;
     registry.register::<geometry::servo::VisualServoStep>()?;
+    registry.register::<sfm::stereo::Stereo>()?;
+    registry.register::<analyze::disparity_error::DisparityError>()?;
     Ok(())
 }
 

@@ -1,0 +1,3 @@
+//! Structure from motion and dense 3-D: stereo matching, reconstruction.
+
+pub mod stereo;
