@@ -181,7 +181,7 @@ impl StereoOptions {
     /// Checks `p` and converts it.
     pub fn from_params(p: &StereoParams) -> Result<StereoOptions, String> {
         let block = p.block_size as usize;
-        if block % 2 == 0 {
+        if block.is_multiple_of(2) {
             return Err(format!("`block_size` must be odd, got {block}"));
         }
         if p.cost == MatchCost::Census && !(3..=MAX_CENSUS_BLOCK).contains(&block) {
