@@ -22,6 +22,7 @@ const SNAPSHOTTED: &[&str] = &[
     "raycast.ron",
     "render.ron",
     "segment.ron",
+    "stereo.ron",
     "two_branches.ron",
     "two_view.ron",
 ];
@@ -103,6 +104,11 @@ fn lines() {
 #[test]
 fn segment() {
     check_graph("segment.ron");
+}
+
+#[test]
+fn stereo() {
+    check_graph("stereo.ron");
 }
 
 #[test]

@@ -153,6 +153,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<geometry::pnp::SolvePnp>()?;
     registry.register::<geometry::triangulate::Triangulate>()?;
     registry.register::<geometry::servo::VisualServoStep>()?;
+    registry.register::<sfm::stereo::Stereo>()?;
+    registry.register::<analyze::disparity_error::DisparityError>()?;
     Ok(())
 }
 

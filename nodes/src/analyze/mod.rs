@@ -1,6 +1,7 @@
 //! Measurements on values.
 
 pub mod depth_agreement;
+pub mod disparity_error;
 pub mod evaluate;
 pub mod histogram;
 pub mod match_accuracy;
