@@ -12,6 +12,7 @@ pub mod geometry;
 pub mod io;
 /// The `match` family (descriptor and patch matching); `match` is a keyword, hence the name.
 pub mod matching;
+pub mod mesh;
 pub mod optimize;
 pub mod render;
 pub mod segment;
@@ -145,6 +146,12 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<geometry::pnp::SolvePnp>()?;
     registry.register::<geometry::triangulate::Triangulate>()?;
     registry.register::<geometry::servo::VisualServoStep>()?;
+    registry.register::<mesh::pointcloud::VoxelDownsample>()?;
+    registry.register::<mesh::pointcloud::RemoveOutliers>()?;
+    registry.register::<mesh::pointcloud::EstimateNormals>()?;
+    registry.register::<mesh::icp::Icp>()?;
+    registry.register::<mesh::icp::Transform>()?;
+    registry.register::<mesh::fit::FitPrimitive>()?;
     Ok(())
 }
 
