@@ -308,7 +308,7 @@ fn circumsphere(p: &[[f64; 3]]) -> Option<Sphere> {
     ]);
     let scale = 8.0 * rows[0].norm() * rows[1].norm() * rows[2].norm();
     let det = m.determinant();
-    if !(det.abs() > 1e-10 * scale) {
+    if det.is_nan() || det.abs() <= 1e-10 * scale {
         return None;
     }
     let b = Vector3::new(
@@ -591,11 +591,8 @@ mod tests {
             let all = SphereEstimator.fit(&pts);
             for m in [m4, all] {
                 let m = m[0];
-                for a in 0..3 {
-                    assert!(
-                        (m.center[a] - c[a]).abs() < 1e-7 * scale.max(1.0),
-                        "{scale} {m:?}"
-                    );
+                for (got, want) in m.center.iter().zip(&c) {
+                    assert!((got - want).abs() < 1e-7 * scale.max(1.0), "{scale} {m:?}");
                 }
                 assert!((m.radius - r).abs() < 1e-7 * scale.max(1.0));
             }

@@ -298,8 +298,8 @@ mod tests {
             };
             // f32 clouds lose precision a million units out: test the function in f64 there.
             let fit = fit_primitive(&pts, Primitive::Sphere, &options).unwrap();
-            for k in 0..3 {
-                assert!((fit.model[k] - center[k]).abs() < 2e-3, "{:?}", fit.model);
+            for (got, want) in fit.model.iter().zip(&center) {
+                assert!((got - want).abs() < 2e-3, "{:?}", fit.model);
             }
             assert!((fit.model[3] - 2.5).abs() < 2e-3);
             assert!(fit.inliers[..400].iter().filter(|k| **k).count() >= 390);

@@ -324,7 +324,7 @@ fn point_to_point_step(moved: &[[f64; 3]], target: &[[f64; 3]], pairs: &[Pair]) 
     let svd = h.svd(true, true);
     let (u, vt) = (svd.u?, svd.v_t?);
     let s = svd.singular_values;
-    if !(s[1] > COLLINEAR_RATIO * s[0]) {
+    if s[1].is_nan() || s[1] <= COLLINEAR_RATIO * s[0] {
         return None;
     }
     let v = vt.transpose();
@@ -364,7 +364,7 @@ fn point_to_plane_step(
         .fold((f64::INFINITY, 0.0f64), |(lo, hi), &v| {
             (lo.min(v), hi.max(v))
         });
-    if !(lo > PLANE_CONDITION * hi) {
+    if lo.is_nan() || lo <= PLANE_CONDITION * hi {
         return None;
     }
     let chol = ata.cholesky()?;
@@ -421,7 +421,7 @@ pub fn icp(
         .sum::<f64>()
         / target.len() as f64)
         .sqrt();
-    if !(radius > 0.0) {
+    if radius.is_nan() || radius <= 0.0 {
         return Err(IcpError::CoincidentTarget);
     }
     let normalize = |p: &[f64; 3]| -> [f64; 3] { ((Vector3::from(*p) - c) / radius).into() };

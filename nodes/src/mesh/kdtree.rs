@@ -107,7 +107,8 @@ impl KdTree {
             .max_by(|&a, &b| (hi[a] - lo[a]).total_cmp(&(hi[b] - lo[b])))
             .unwrap_or(0);
         // All points coincide (or are not finite): one leaf, whatever its size.
-        if !(hi[axis] - lo[axis] > 0.0) {
+        let extent = hi[axis] - lo[axis];
+        if extent.is_nan() || extent <= 0.0 {
             return id;
         }
         let mid = start + (end - start) / 2;

@@ -204,7 +204,8 @@ pub fn voxel_downsample(
         }
     }
     let extent = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
-    if !(extent / voxel_size < MAX_VOXEL_INDEX) {
+    let cells = extent / voxel_size;
+    if cells.is_nan() || cells >= MAX_VOXEL_INDEX {
         return Err(PointCloudError::VoxelTooSmall { voxel_size, extent });
     }
     let key = |p: &[f64; 3]| [0, 1, 2].map(|a| ((p[a] - lo[a]) / voxel_size).floor() as i64);
