@@ -12,6 +12,7 @@ pub mod geometry;
 pub mod io;
 /// The `match` family (descriptor and patch matching); `match` is a keyword, hence the name.
 pub mod matching;
+pub mod mesh;
 pub mod optimize;
 pub mod render;
 pub mod segment;
@@ -155,6 +156,12 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<geometry::servo::VisualServoStep>()?;
     registry.register::<sfm::stereo::Stereo>()?;
     registry.register::<analyze::disparity_error::DisparityError>()?;
+    registry.register::<mesh::pointcloud::VoxelDownsample>()?;
+    registry.register::<mesh::pointcloud::RemoveOutliers>()?;
+    registry.register::<mesh::pointcloud::EstimateNormals>()?;
+    registry.register::<mesh::icp::Icp>()?;
+    registry.register::<mesh::icp::Transform>()?;
+    registry.register::<mesh::fit::FitPrimitive>()?;
     Ok(())
 }
 

@@ -10,6 +10,10 @@
 //!   arcs; the geometric refinement removes that bias.
 //! - [`PlaneEstimator`]: `n·X + d = 0`; three points (cross product) or total least squares
 //!   (3×3 scatter matrix); residual: squared perpendicular distance.
+//! - [`SphereEstimator`]: centre and radius; the circumsphere of four points (minimal), or the
+//!   algebraic fit `‖X‖² + D·X + G = 0` (on centred, scaled coordinates) refined by
+//!   Levenberg–Marquardt on the geometric distances `‖X − c‖ − r` — the 3-D analogue of the
+//!   circle; residual: squared geometric distance.
 //!
 //! Reference: Kåsa, "A circle fitting procedure and its error analysis", IEEE TIM 1976; Chernov,
 //! "Circular and linear regression" (2010), ch. 5; Hartley & Zisserman appendix A5 (TLS).
@@ -279,6 +283,160 @@ impl Estimator for PlaneEstimator {
     }
 }
 
+/// A sphere.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sphere {
+    /// Centre.
+    pub center: [f64; 3],
+    /// Radius (> 0).
+    pub radius: f64,
+}
+
+/// Sphere estimator (circumsphere / algebraic + geometric LM).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct SphereEstimator;
+
+/// The sphere through four points, or `None` when they are (nearly) coplanar.
+fn circumsphere(p: &[[f64; 3]]) -> Option<Sphere> {
+    // Relative to the first point: 2 (pᵢ − p₀)·u = ‖pᵢ − p₀‖², u = centre − p₀.
+    let a = Vector3::from(p[0]);
+    let rows: Vec<Vector3<f64>> = p[1..4].iter().map(|q| Vector3::from(*q) - a).collect();
+    let m = Matrix3::from_rows(&[
+        rows[0].transpose() * 2.0,
+        rows[1].transpose() * 2.0,
+        rows[2].transpose() * 2.0,
+    ]);
+    let scale = 8.0 * rows[0].norm() * rows[1].norm() * rows[2].norm();
+    let det = m.determinant();
+    if det.is_nan() || det.abs() <= 1e-10 * scale {
+        return None;
+    }
+    let b = Vector3::new(
+        rows[0].norm_squared(),
+        rows[1].norm_squared(),
+        rows[2].norm_squared(),
+    );
+    let u = m.lu().solve(&b)?;
+    let radius = u.norm();
+    (radius.is_finite() && radius > 0.0).then(|| Sphere {
+        center: (a + u).into(),
+        radius,
+    })
+}
+
+/// The algebraic sphere fit on centred, scaled coordinates.
+fn algebraic_sphere(data: &[[f64; 3]]) -> Option<Sphere> {
+    let n = data.len() as f64;
+    let mut mean = Vector3::zeros();
+    for p in data {
+        mean += Vector3::from(*p);
+    }
+    mean /= n;
+    let s = data
+        .iter()
+        .map(|p| (Vector3::from(*p) - mean).norm())
+        .sum::<f64>()
+        / n;
+    if s.is_nan() || s <= 0.0 {
+        return None;
+    }
+    // [x y z 1]·[D E F G]ᵀ = −(x² + y² + z²).
+    let mut ata = nalgebra::Matrix4::zeros();
+    let mut atb = nalgebra::Vector4::zeros();
+    for p in data {
+        let q = (Vector3::from(*p) - mean) / s;
+        let row = nalgebra::Vector4::new(q[0], q[1], q[2], 1.0);
+        ata += row * row.transpose();
+        atb -= row * q.norm_squared();
+    }
+    let sol = ata.cholesky()?.solve(&atb);
+    let c = Vector3::new(-sol[0] / 2.0, -sol[1] / 2.0, -sol[2] / 2.0);
+    let r2 = c.norm_squared() - sol[3];
+    (r2 > 0.0).then(|| Sphere {
+        center: (mean + c * s).into(),
+        radius: s * r2.sqrt(),
+    })
+}
+
+struct SphereProblem<'a>(&'a [[f64; 3]]);
+
+impl Problem for SphereProblem<'_> {
+    fn num_params(&self) -> usize {
+        4
+    }
+    fn num_residuals(&self) -> usize {
+        self.0.len()
+    }
+    fn residuals(&self, x: &[f64], r: &mut [f64]) {
+        for (ri, p) in r.iter_mut().zip(self.0) {
+            let d = Vector3::new(p[0] - x[0], p[1] - x[1], p[2] - x[2]);
+            *ri = d.norm() - x[3];
+        }
+    }
+    fn jacobian(&self, x: &[f64], j: &mut nalgebra::DMatrix<f64>) {
+        for (i, p) in self.0.iter().enumerate() {
+            let d = Vector3::new(p[0] - x[0], p[1] - x[1], p[2] - x[2]);
+            let norm = d.norm().max(1e-300);
+            for a in 0..3 {
+                j[(i, a)] = -d[a] / norm;
+            }
+            j[(i, 3)] = -1.0;
+        }
+    }
+}
+
+/// Least-squares sphere: the algebraic fit, then geometric refinement. The refinement runs on
+/// coordinates relative to the algebraic centre, so far-off spheres keep their precision.
+pub fn fit_sphere(data: &[[f64; 3]]) -> Option<Sphere> {
+    if data.len() < 4 {
+        return None;
+    }
+    let init = algebraic_sphere(data)?;
+    let c = init.center;
+    let local: Vec<[f64; 3]> = data
+        .iter()
+        .map(|p| [p[0] - c[0], p[1] - c[1], p[2] - c[2]])
+        .collect();
+    let report = lm::levenberg_marquardt(
+        &SphereProblem(&local),
+        &[0.0, 0.0, 0.0, init.radius],
+        &LmOptions::default(),
+    );
+    let x = report.x;
+    (x.iter().all(|v| v.is_finite()) && x[3] > 0.0)
+        .then(|| Sphere {
+            center: [c[0] + x[0], c[1] + x[1], c[2] + x[2]],
+            radius: x[3],
+        })
+        .or(Some(init))
+}
+
+impl Estimator for SphereEstimator {
+    type Datum = [f64; 3];
+    type Model = Sphere;
+    const MIN_SAMPLES: usize = 4;
+
+    fn fit(&self, sample: &[[f64; 3]]) -> Vec<Sphere> {
+        if sample.len() == 4 {
+            circumsphere(sample).into_iter().collect()
+        } else {
+            fit_sphere(sample).into_iter().collect()
+        }
+    }
+
+    fn residuals(&self, m: &Sphere, data: &[[f64; 3]], residuals: &mut [f64]) {
+        for (r, p) in residuals.iter_mut().zip(data) {
+            let d = Vector3::new(p[0] - m.center[0], p[1] - m.center[1], p[2] - m.center[2]).norm()
+                - m.radius;
+            *r = d * d;
+        }
+    }
+
+    fn datum_is_finite(&self, p: &[f64; 3]) -> bool {
+        p.iter().all(|v| v.is_finite())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -409,5 +567,43 @@ mod tests {
             ),
             Err(RobustError::NonFinite { index: 0 })
         );
+    }
+
+    #[test]
+    fn sphere_exact_scaled_and_coplanar() {
+        for (scale, offset) in [(1e-3, 0.0), (1.0, 0.0), (1e3, 0.0), (1.0, 1e6)] {
+            let (c, r) = (
+                [1.0 * scale + offset, -2.0 * scale, 0.5 * scale],
+                3.0 * scale,
+            );
+            // A cap of directions (within 60° of +z): short arcs bias algebraic fits.
+            let pts: Vec<[f64; 3]> = (0..30)
+                .map(|i| {
+                    let (t, p) = (0.2 + 0.03 * i as f64, 0.7 * i as f64);
+                    [
+                        c[0] + r * t.sin() * p.cos(),
+                        c[1] + r * t.sin() * p.sin(),
+                        c[2] + r * t.cos(),
+                    ]
+                })
+                .collect();
+            let m4 = SphereEstimator.fit(&pts[..4]);
+            let all = SphereEstimator.fit(&pts);
+            for m in [m4, all] {
+                let m = m[0];
+                for (got, want) in m.center.iter().zip(&c) {
+                    assert!((got - want).abs() < 1e-7 * scale.max(1.0), "{scale} {m:?}");
+                }
+                assert!((m.radius - r).abs() < 1e-7 * scale.max(1.0));
+            }
+        }
+        let coplanar = [
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [1.0, 1.0, 0.0],
+        ];
+        assert!(SphereEstimator.fit(&coplanar).is_empty());
+        assert!(SphereEstimator.fit(&[[2.0; 3]; 4]).is_empty());
     }
 }

@@ -1,0 +1,7 @@
+//! The `mesh` family: point clouds (downsampling, outliers, normals), registration (ICP) and
+//! primitive fitting — Open3D's and PCL's territory.
+
+pub mod fit;
+pub mod icp;
+pub mod kdtree;
+pub mod pointcloud;
