@@ -20,8 +20,10 @@ const SNAPSHOTTED: &[&str] = &[
     "ransac_fundamental.ron",
     "ransac_homography.ron",
     "raycast.ron",
+    "reconstruct.ron",
     "render.ron",
     "segment.ron",
+    "sfm.ron",
     "stereo.ron",
     "two_branches.ron",
     "two_view.ron",
@@ -104,6 +106,16 @@ fn lines() {
 #[test]
 fn segment() {
     check_graph("segment.ron");
+}
+
+#[test]
+fn reconstruct() {
+    check_graph("reconstruct.ron");
+}
+
+#[test]
+fn sfm() {
+    check_graph("sfm.ron");
 }
 
 #[test]
