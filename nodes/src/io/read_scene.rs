@@ -1231,16 +1231,16 @@ mod tests {
             });
             assert!(!same, "seed 8 shifted by ({dx}, {dy}) equals seed 7");
         }
-        // Tileable: the jump across the wrap is no larger than the largest jump inside.
+        // Tileable: the mean jump across the wrap is like the mean jump between neighbours
+        // inside (a texture that does not tile jumps by ~1/3 on average there).
         let at = |x: usize, y: usize| d[(y * 64 + x) * 3];
         let inner = (0..64)
             .flat_map(|y| (0..63).map(move |x| (x, y)))
             .map(|(x, y)| (at(x + 1, y) - at(x, y)).abs())
-            .fold(0.0, f32::max);
-        let wrap = (0..64)
-            .map(|y| (at(0, y) - at(63, y)).abs())
-            .fold(0.0, f32::max);
-        assert!(wrap <= inner * 1.01, "wrap {wrap} inner {inner}");
+            .sum::<f32>()
+            / (63.0 * 64.0);
+        let wrap = (0..64).map(|y| (at(0, y) - at(63, y)).abs()).sum::<f32>() / 64.0;
+        assert!(wrap <= 2.0 * inner, "wrap {wrap} inner {inner}");
     }
 
     #[test]
