@@ -64,6 +64,9 @@ use crate::optimize::bundle_adjust::{Mode, bundle_adjust};
 
 const NONE: u32 = u32::MAX;
 
+/// A triangulated position and the observations it explains.
+type Candidate = Option<(Vector3<f64>, Vec<(u32, u32)>)>;
+
 /// Settings of [`reconstruct`]; see the module documentation.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SfmOptions {
@@ -246,7 +249,7 @@ impl<'a> State<'a> {
             return f64::INFINITY;
         };
         let c = p.r * x + p.t;
-        if !(c.z > 0.0) {
+        if c.z.is_nan() || c.z <= 0.0 {
             return f64::INFINITY;
         }
         let k = &self.k[img];
@@ -302,8 +305,8 @@ impl<'a> State<'a> {
         if obs.len() < 2 {
             return None;
         }
-        let mut best: Option<(Vector3<f64>, Vec<(u32, u32)>)> = None;
-        let consider = |best: &mut Option<(Vector3<f64>, Vec<(u32, u32)>)>, x: Vector3<f64>| {
+        let mut best: Candidate = None;
+        let consider = |best: &mut Candidate, x: Vector3<f64>| {
             if !x.iter().all(|v| v.is_finite()) {
                 return;
             }

@@ -309,12 +309,15 @@ pub fn verify_pair(
     (kept, homography_inliers, model)
 }
 
+/// Keypoint positions per image, and the pinhole intrinsics they are in (when calibrated).
+pub type ImagePoints = (Vec<Vec<[f64; 2]>>, Option<Vec<Intrinsics>>);
+
 /// Keypoint positions of every image in the pixels verification works in: undistorted pinhole
 /// pixels of each camera when `cameras` are given, raw keypoint positions otherwise.
 pub fn image_points(
     keypoints: &[&[Keypoint]],
     cameras: Option<&[Camera]>,
-) -> Result<(Vec<Vec<[f64; 2]>>, Option<Vec<Intrinsics>>), String> {
+) -> Result<ImagePoints, String> {
     let raw: Vec<Vec<[f64; 2]>> = keypoints
         .iter()
         .map(|k| k.iter().map(|p| [f64::from(p.x), f64::from(p.y)]).collect())
