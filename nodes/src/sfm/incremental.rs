@@ -53,7 +53,7 @@ use ocellus_engine::{
     Inputs, Op, OpError, Operator, Outputs, PortSpec, PortType, RunContext, params,
 };
 
-use super::pairs::{PairModel, camera_list, image_points, keypoint_lists, list_input, read_pairs};
+use super::pairs::{PairModel, camera_list, image_points, keypoint_lists, list_items, read_pairs};
 use crate::geometry::pnp::{CameraPose, P3pEstimator, PnpPair, refine_pose};
 use crate::geometry::pose_util::{Intrinsics, pose_from_rt};
 use crate::geometry::ransac::{Method, RobustOptions, estimate};
@@ -794,23 +794,8 @@ pub fn reconstruct(input: &SfmInput<'_>, o: &SfmOptions) -> Result<SfmResult, Sf
     }
     let (mut pixels, ks) =
         image_points(&input.keypoints, input.cameras.as_deref()).map_err(SfmError::Input)?;
-    let shared_focal = if ks.is_none() {
-        let (w, h) = input.sizes.first().copied().unwrap_or((0, 0));
-        if input.sizes.iter().any(|&s| s != (w, h)) {
-            return Err(SfmError::Input(
-                "without cameras all images must have the same size (one shared camera)".into(),
-            ));
-        }
-        Some(if o.focal_px > 0.0 {
-            o.focal_px
-        } else {
-            1.2 * f64::from(w.max(h))
-        })
-    } else {
-        None
-    };
-    let k: Vec<Intrinsics> = match (&ks, shared_focal) {
-        (Some(ks), _) => {
+    let (k, shared_focal): (Vec<Intrinsics>, Option<f64>) = match &ks {
+        Some(ks) => {
             // Square pixels: y' = cy + (y − cy)·fx/fy.
             for (p, k) in pixels.iter_mut().zip(ks) {
                 let s = k.fx / k.fy;
@@ -820,26 +805,29 @@ pub fn reconstruct(input: &SfmInput<'_>, o: &SfmOptions) -> Result<SfmResult, Sf
                     }
                 }
             }
-            ks.iter()
-                .map(|k| Intrinsics {
-                    fx: k.fx,
-                    fy: k.fx,
-                    cx: k.cx,
-                    cy: k.cy,
-                })
-                .collect()
+            let square = ks.iter().map(|k| Intrinsics { fy: k.fx, ..*k }).collect();
+            (square, None)
         }
-        (None, Some(f)) => input
-            .sizes
-            .iter()
-            .map(|&(w, h)| Intrinsics {
+        None => {
+            let (w, h) = input.sizes.first().copied().unwrap_or((0, 0));
+            if input.sizes.iter().any(|&s| s != (w, h)) {
+                return Err(SfmError::Input(
+                    "without cameras all images must have the same size (one shared camera)".into(),
+                ));
+            }
+            let f = if o.focal_px > 0.0 {
+                o.focal_px
+            } else {
+                1.2 * f64::from(w.max(h))
+            };
+            let k = Intrinsics {
                 fx: f,
                 fy: f,
                 cx: f64::from(w) / 2.0 - 0.5,
                 cy: f64::from(h) / 2.0 - 0.5,
-            })
-            .collect(),
-        (None, None) => unreachable_focal()?,
+            };
+            (vec![k; n], Some(f))
+        }
     };
     let tracks = &input.tracks.tracks;
     let mut track_of: Vec<Vec<u32>> = input
@@ -917,10 +905,6 @@ pub fn reconstruct(input: &SfmInput<'_>, o: &SfmOptions) -> Result<SfmResult, Sf
         stats: st.stats,
         focal_px: focal.unwrap_or(f64::NAN),
     })
-}
-
-fn unreachable_focal() -> Result<Vec<Intrinsics>, SfmError> {
-    Err(SfmError::Input("no intrinsics".into()))
 }
 
 /// Global adjustment (refining the shared focal length when asked), filtering,
@@ -1353,33 +1337,16 @@ impl Operator for Incremental {
             }
         };
         let cameras = camera_list(inputs, "cameras")?;
-        let images: Option<Vec<&Image>> = list_input(inputs, "images", PortType::Image)?
-            .map(|items| {
-                items
-                    .iter()
-                    .map(|v| match v {
-                        Value::Image(i) => Ok(&**i),
-                        other => Err(OpError::input(
-                            "images",
-                            format!("list holds {}", other.port_type()),
-                        )),
-                    })
-                    .collect::<Result<Vec<_>, _>>()
-            })
-            .transpose()?;
-        let names: Vec<String> = match list_input(inputs, "names", PortType::Text)? {
-            Some(items) => items
-                .iter()
-                .map(|v| match v {
-                    Value::Text(t) => Ok(t.to_string()),
-                    other => Err(OpError::input(
-                        "names",
-                        format!("list holds {}", other.port_type()),
-                    )),
-                })
-                .collect::<Result<_, _>>()?,
-            None => (1..=n).map(|i| format!("image_{i:04}")).collect(),
-        };
+        let images: Option<Vec<&Image>> =
+            list_items(inputs, "images", PortType::Image, |v| match v {
+                Value::Image(i) => Some(&**i),
+                _ => None,
+            })?;
+        let names: Vec<String> = list_items(inputs, "names", PortType::Text, |v| match v {
+            Value::Text(t) => Some(t.to_string()),
+            _ => None,
+        })?
+        .unwrap_or_else(|| (1..=n).map(|i| format!("image_{i:04}")).collect());
         for (port, len) in [
             ("cameras", cameras.as_ref().map(Vec::len)),
             ("images", images.as_ref().map(Vec::len)),

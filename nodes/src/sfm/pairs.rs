@@ -479,54 +479,57 @@ pub fn read_pairs(m: &Matrix, images: usize) -> Result<Vec<PairRow>, String> {
     Ok(out)
 }
 
-/// A `List<T>` input as its items, checked to be of `ty`.
-pub fn list_input<'a>(
+/// The elements of an optional `List<T>` input (`ty` = `T`), each taken by `pick`; `None` when
+/// the port is not connected. An element `pick` rejects is an error naming the port.
+pub fn list_items<'a, T>(
     inputs: &Inputs<'a>,
     name: &str,
     ty: PortType,
-) -> Result<Option<&'a [Value]>, OpError> {
-    match inputs.get(name) {
-        None => Ok(None),
-        Some(Value::List(l)) if l.element == ty => Ok(Some(&l.items)),
-        Some(other) => Err(OpError::input(
-            name,
-            format!("expected {}, got {}", ty.list_of(), other.port_type()),
-        )),
-    }
+    pick: impl Fn(&'a Value) -> Option<T>,
+) -> Result<Option<Vec<T>>, OpError> {
+    let items = match inputs.get(name) {
+        None => return Ok(None),
+        Some(Value::List(l)) if l.element == ty => &l.items,
+        Some(other) => {
+            return Err(OpError::input(
+                name,
+                format!("expected {}, got {}", ty.list_of(), other.port_type()),
+            ));
+        }
+    };
+    items
+        .iter()
+        .map(|v| {
+            pick(v).ok_or_else(|| OpError::input(name, format!("list holds {}", v.port_type())))
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .map(Some)
+}
+
+/// The elements of a required `List<T>` input; see [`list_items`].
+pub fn required_list<'a, T>(
+    inputs: &Inputs<'a>,
+    name: &str,
+    ty: PortType,
+    pick: impl Fn(&'a Value) -> Option<T>,
+) -> Result<Vec<T>, OpError> {
+    list_items(inputs, name, ty, pick)?.ok_or_else(|| OpError::input(name, "not connected"))
 }
 
 /// The keypoint sets of a `List<Keypoints>` input.
 pub fn keypoint_lists<'a>(inputs: &Inputs<'a>, name: &str) -> Result<Vec<&'a [Keypoint]>, OpError> {
-    let items = list_input(inputs, name, PortType::Keypoints)?
-        .ok_or_else(|| OpError::input(name, "not connected"))?;
-    items
-        .iter()
-        .map(|v| match v {
-            Value::Keypoints(k) => Ok(k.as_slice()),
-            other => Err(OpError::input(
-                name,
-                format!("list holds {}", other.port_type()),
-            )),
-        })
-        .collect()
+    required_list(inputs, name, PortType::Keypoints, |v| match v {
+        Value::Keypoints(k) => Some(k.as_slice()),
+        _ => None,
+    })
 }
 
 /// The cameras of an optional `List<Camera>` input.
 pub fn camera_list(inputs: &Inputs<'_>, name: &str) -> Result<Option<Vec<Camera>>, OpError> {
-    let Some(items) = list_input(inputs, name, PortType::Camera)? else {
-        return Ok(None);
-    };
-    items
-        .iter()
-        .map(|v| match v {
-            Value::Camera(c) => Ok((**c).clone()),
-            other => Err(OpError::input(
-                name,
-                format!("list holds {}", other.port_type()),
-            )),
-        })
-        .collect::<Result<Vec<_>, _>>()
-        .map(Some)
+    list_items(inputs, name, PortType::Camera, |v| match v {
+        Value::Camera(c) => Some((**c).clone()),
+        _ => None,
+    })
 }
 
 params! {
@@ -682,17 +685,10 @@ impl Operator for MatchPairs {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
         let keypoints = keypoint_lists(inputs, "keypoints")?;
         let descriptors: Vec<&Descriptors> =
-            list_input(inputs, "descriptors", PortType::Descriptors)?
-                .ok_or_else(|| OpError::input("descriptors", "not connected"))?
-                .iter()
-                .map(|v| match v {
-                    Value::Descriptors(d) => Ok(&**d),
-                    other => Err(OpError::input(
-                        "descriptors",
-                        format!("list holds {}", other.port_type()),
-                    )),
-                })
-                .collect::<Result<_, _>>()?;
+            required_list(inputs, "descriptors", PortType::Descriptors, |v| match v {
+                Value::Descriptors(d) => Some(&**d),
+                _ => None,
+            })?;
         let cameras = camera_list(inputs, "cameras")?;
         let pairs = match_pairs(&keypoints, &descriptors, cameras.as_deref(), &self.options)
             .map_err(OpError::failed)?;

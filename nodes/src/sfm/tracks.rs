@@ -17,7 +17,7 @@ use ocellus_engine::{
     Inputs, Op, OpError, Operator, Outputs, PortSpec, PortType, RunContext, param_enum, params,
 };
 
-use super::pairs::{keypoint_lists, list_input, read_pairs};
+use super::pairs::{keypoint_lists, read_pairs, required_list};
 
 /// Union-find with path halving and union by size; the smaller root index wins ties.
 #[derive(Debug, Clone)]
@@ -256,17 +256,11 @@ Example:
 impl Operator for TracksOp {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
         let keypoints = keypoint_lists(inputs, "keypoints")?;
-        let matches: Vec<&[Match]> = list_input(inputs, "matches", PortType::Matches)?
-            .ok_or_else(|| OpError::input("matches", "not connected"))?
-            .iter()
-            .map(|v| match v {
-                Value::Matches(m) => Ok(m.as_slice()),
-                other => Err(OpError::input(
-                    "matches",
-                    format!("list holds {}", other.port_type()),
-                )),
-            })
-            .collect::<Result<_, _>>()?;
+        let matches: Vec<&[Match]> =
+            required_list(inputs, "matches", PortType::Matches, |v| match v {
+                Value::Matches(m) => Some(m.as_slice()),
+                _ => None,
+            })?;
         let pairs = match inputs.require("pairs")? {
             Value::Matrix(m) => {
                 read_pairs(m, keypoints.len()).map_err(|e| OpError::input("pairs", e))?
