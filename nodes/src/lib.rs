@@ -155,6 +155,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<geometry::triangulate::Triangulate>()?;
     registry.register::<geometry::servo::VisualServoStep>()?;
     registry.register::<sfm::stereo::Stereo>()?;
+    registry.register::<sfm::depth::DepthToPoints>()?;
     registry.register::<analyze::disparity_error::DisparityError>()?;
     registry.register::<mesh::pointcloud::VoxelDownsample>()?;
     registry.register::<mesh::pointcloud::RemoveOutliers>()?;
