@@ -9,17 +9,21 @@
 //!
 //! - **Census** ([`census`]): a `block_size × block_size` window, one bit per neighbour
 //!   (`neighbour < centre`), matched by Hamming distance; borders replicate.
-//! - **SGM** ([`sgm_aggregate`]): the census cost `C(p, d)` (Hamming bits × [`COST_SCALE`], u8)
+//! - **SGM** ([`sgm_step`]): the census cost `C(p, d)` (Hamming bits × [`COST_SCALE`], u8)
 //!   is aggregated along 8 (or 4) straight paths `r`:
 //!   `L_r(p, d) = C(p, d) + min(L_r(p−r, d), L_r(p−r, d±1) + P1, min_k L_r(p−r, k) + P2)
 //!   − min_k L_r(p−r, k)` (Hirschmüller 2008, eq. 13), in u16: the subtraction keeps
 //!   `L_r ≤ C_max + P2`, so the sum over paths `S(p, d)` fits u16 when
-//!   `paths · (C_max + P2) < 2¹⁶` (checked). The cost of a row is recomputed from the census
-//!   words in every pass rather than stored, so the one large buffer is `S`:
-//!   `W · H · num_disparities · 2` bytes (Aloe 1282×1110, 224 disparities: 638 MB).
-//!   Horizontal paths run in parallel over rows; the 3 downward and 3 upward paths run row
-//!   after row, in parallel over fixed 64-pixel column chunks (each chunk reads only the
-//!   previous row). All arithmetic is integer, so the result does not depend on threads.
+//!   `paths · (C_max + P2) < 2¹⁶` (checked). As in OpenCV's StereoSGBM, the paths run as two
+//!   sweeps over the rows: downward (left to right, and the three paths from the row above)
+//!   and upward (right to left, and the three from the row below); at each pixel the four
+//!   steps of a sweep are one pass over the disparities in u16 vector lanes, and the costs
+//!   come from the census words on the fly (popcounts of byte planes, u8 lanes), in each
+//!   sweep, rather than stored. The one large buffer is `S`: `W · H · num_disparities · 2`
+//!   bytes (Aloe 1282×1110, 224 disparities: 638 MB). The first sweep to reach a row writes
+//!   its sum there, the second adds its own and decides the row. With two threads the sweeps
+//!   run at the same time and meet in the middle; the sums are integer, so the result does
+//!   not depend on the threads.
 //! - **BM** ([`bm_costs_row`]): the sum of absolute differences, or `1 − ZNCC`, or the census
 //!   Hamming distance over the `block_size` window, per row in parallel.
 //! - **Decision** ([`decide_row`]): the winner `k` minimises `S`; it is rejected when another
@@ -41,6 +45,7 @@ use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
 use rayon::prelude::*;
+use std::sync::{Mutex, PoisonError};
 
 use crate::filter::grayscale::{LumaStandard, grayscale};
 
@@ -48,8 +53,6 @@ use crate::filter::grayscale::{LumaStandard, grayscale};
 pub const COST_SCALE: u16 = 4;
 /// Largest census window side: its `side² − 1` bits must fit in a u64.
 pub const MAX_CENSUS_BLOCK: usize = 7;
-/// Columns per parallel task of the vertical and diagonal SGM passes.
-const CHUNK_PX: usize = 64;
 /// Rows per parallel task of the per-row stages.
 const ROWS_PER_TASK: usize = 4;
 
@@ -304,38 +307,53 @@ fn valid_range(x: usize, w: usize, min_d: i32, n: usize) -> (usize, usize) {
 /// when the `i`-th neighbour (row-major, centre skipped) is darker than the centre. Samples
 /// outside the image repeat the nearest border sample.
 pub fn census(plane: &[f32], w: usize, h: usize, block: usize) -> Vec<u64> {
-    let r = (block / 2) as isize;
+    let r = block / 2;
     let mut out = vec![0u64; w * h];
     if w == 0 || h == 0 {
         return out;
     }
-    let at = |x: isize, y: isize| {
-        let xc = x.clamp(0, w as isize - 1) as usize;
-        let yc = y.clamp(0, h as isize - 1) as usize;
-        plane[yc * w + xc]
-    };
-    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        let y = y as isize;
-        for (x, word) in row.iter_mut().enumerate() {
-            let x = x as isize;
-            let c = at(x, y);
-            let mut bits = 0u64;
-            let mut bit = 0;
-            for dy in -r..=r {
-                for dx in -r..=r {
-                    if dx == 0 && dy == 0 {
-                        continue;
-                    }
-                    if at(x + dx, y + dy) < c {
-                        bits |= 1 << bit;
-                    }
-                    bit += 1;
+    let pw = w + 2 * r;
+    out.par_chunks_mut(w).enumerate().for_each_init(
+        || vec![0f32; block * pw],
+        |rows, (y, word_row)| {
+            // The window's rows, padded by r on both sides with the border samples.
+            for (i, dst) in rows.chunks_exact_mut(pw).enumerate() {
+                let sy = (y + i).saturating_sub(r).min(h - 1);
+                let src = &plane[sy * w..(sy + 1) * w];
+                for (px, d) in dst.iter_mut().enumerate() {
+                    *d = src[px.saturating_sub(r).min(w - 1)];
                 }
             }
-            *word = bits;
-        }
-    });
+            census_row(rows, pw, w, block, word_row);
+        },
+    );
     out
+}
+
+/// The census words of one row from its `block` padded window rows (`pw` samples each):
+/// one pass over the row per neighbour, so that the comparisons vectorize over x.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl",
+    "x86_64+avx2",
+    "x86_64+sse4.1"
+))]
+fn census_row(rows: &[f32], pw: usize, w: usize, block: usize, out: &mut [u64]) {
+    let r = block / 2;
+    let centre = &rows[r * pw + r..r * pw + r + w];
+    let out = &mut out[..w];
+    let mut bit = 0;
+    for dy in 0..block {
+        for dx in 0..block {
+            if dy == r && dx == r {
+                continue;
+            }
+            let nb = &rows[dy * pw + dx..dy * pw + dx + w];
+            for ((word, &c), &v) in out.iter_mut().zip(centre).zip(nb) {
+                *word |= u64::from(v < c) << bit;
+            }
+            bit += 1;
+        }
+    }
 }
 
 /// Census costs of pixels `x0 .. x0 + out.len() / n` of one row: `out[i·n + k]` is the Hamming
@@ -414,146 +432,508 @@ fn path_start(n: usize) -> Vec<u16> {
     v
 }
 
-/// The SGM aggregated cost `S(p, k)` (u16, row-major `[y][x][k]`) of census words `left`,
-/// `right` (`w × h`); see the module docs.
-pub fn sgm_aggregate(
-    left: &[u64],
-    right: &[u64],
-    w: usize,
-    h: usize,
-    o: &StereoOptions,
-) -> Vec<u16> {
-    let n = o.num_disparities;
-    let row = w * n;
-    let mut sum = vec![0u16; row * h];
-    if row == 0 || h == 0 {
-        return sum;
-    }
-    let invalid = (((o.block_size * o.block_size).saturating_sub(1)) as u16 * COST_SCALE) as u8;
-    let (p1, p2) = (o.p1, o.p2);
-    // Horizontal paths: rows are independent.
-    sum.par_chunks_mut(row).enumerate().for_each(|(y, acc)| {
-        let mut cost = vec![0u8; row];
-        census_cost_row(
-            &left[y * w..(y + 1) * w],
-            &right[y * w..(y + 1) * w],
-            0,
-            o.min_disparity,
-            n,
-            invalid,
-            &mut cost,
-        );
-        let (mut a, mut b) = (path_start(n), path_start(n));
-        let mut m = 0;
-        for x in 0..w {
-            m = sgm_step(
-                &cost[x * n..(x + 1) * n],
-                &a,
-                m,
-                p1,
-                p2,
-                &mut b,
-                &mut acc[x * n..],
-            );
-            std::mem::swap(&mut a, &mut b);
-        }
-        let (mut a, mut b) = (path_start(n), path_start(n));
-        let mut m = 0;
-        for x in (0..w).rev() {
-            m = sgm_step(
-                &cost[x * n..(x + 1) * n],
-                &a,
-                m,
-                p1,
-                p2,
-                &mut b,
-                &mut acc[x * n..],
-            );
-            std::mem::swap(&mut a, &mut b);
-        }
-    });
-    let shifts: &[isize] = if o.paths == 8 { &[-1, 0, 1] } else { &[0] };
-    let ctx = PassContext {
-        left,
-        right,
-        w,
-        h,
-        n,
-        invalid,
-        o,
-        shifts,
+/// Multiversion targets of the SGM kernels: integer code, so every path computes the same.
+/// AVX-512BW doubles the u16 lanes of AVX2, and BITALG counts the bits of 64 census bytes in
+/// one instruction.
+macro_rules! sgm_kernel {
+    ($item:item) => {
+        #[multiversion::multiversion(targets(
+            "x86_64+avx512f+avx512bw+avx512vl+avx512bitalg",
+            "x86_64+avx2",
+            "x86_64+sse4.1"
+        ))]
+        $item
     };
-    vertical_pass(&mut sum, &ctx, true);
-    vertical_pass(&mut sum, &ctx, false);
-    sum
 }
 
-struct PassContext<'a> {
+/// The inputs of both SGM sweeps.
+struct SweepContext<'a> {
+    /// Left census words, `w × h`.
     left: &'a [u64],
-    right: &'a [u64],
+    /// The right census words as byte planes with columns reversed, `[y][plane][j]`: byte
+    /// `plane` of the right word at column `w − 1 − j`. The right pixels `x − min_d − k` of
+    /// `k = lo … hi − 1` are then one ascending run of `j`, and the Hamming distance is a sum of
+    /// byte popcounts, which vectorizes in u8 lanes.
+    right_planes: &'a [u8],
+    /// Bytes per census word (1 for a 3 × 3 window, 3 for 5 × 5, 6 for 7 × 7).
+    planes: usize,
     w: usize,
     h: usize,
     n: usize,
+    min_d: i32,
     invalid: u8,
-    o: &'a StereoOptions,
-    /// Source column offsets in the previous row, one per path.
-    shifts: &'a [isize],
+    p1: u16,
+    p2: u16,
+    /// 8 paths (horizontal and three from the previous row per sweep) or 4 (horizontal and
+    /// vertical).
+    diagonals: bool,
 }
 
-/// The paths coming from the previous row (`down`) or the next row, one per shift: rows in
-/// order, each in parallel over fixed column chunks.
-fn vertical_pass(sum: &mut [u16], c: &PassContext<'_>, down: bool) {
-    let (w, h, n) = (c.w, c.h, c.n);
-    let dp = n + 2;
-    let paths = c.shifts.len();
-    let cell = paths * dp;
-    let mut prev: Vec<u16> = (0..w * paths).flat_map(|_| path_start(n)).collect();
-    let mut cur = prev.clone();
-    let mut prev_min = vec![0u16; w * paths];
-    let mut cur_min = prev_min.clone();
-    let zero = path_start(n);
-    for i in 0..h {
-        let y = if down { i } else { h - 1 - i };
-        let first = i == 0;
-        let (prev_ref, prev_min_ref, zero) = (&prev, &prev_min, &zero);
-        let lrow = &c.left[y * w..(y + 1) * w];
-        let rrow = &c.right[y * w..(y + 1) * w];
-        sum[y * w * n..(y + 1) * w * n]
-            .par_chunks_mut(CHUNK_PX * n)
-            .zip(cur.par_chunks_mut(CHUNK_PX * cell))
-            .zip(cur_min.par_chunks_mut(CHUNK_PX * paths))
-            .enumerate()
-            .for_each(|(chunk, ((acc, out), out_min))| {
-                let x0 = chunk * CHUNK_PX;
-                let count = acc.len() / n;
-                let mut cost = vec![0u8; count * n];
-                census_cost_row(lrow, rrow, x0, c.o.min_disparity, n, c.invalid, &mut cost);
-                for i in 0..count {
-                    let x = x0 + i;
-                    for (j, &s) in c.shifts.iter().enumerate() {
-                        let xs = x as isize + s;
-                        let (p, pm) = if first || xs < 0 || xs >= w as isize {
-                            (&zero[..], 0)
-                        } else {
-                            let at = xs as usize * paths + j;
-                            (&prev_ref[at * dp..(at + 1) * dp], prev_min_ref[at])
-                        };
-                        let at = i * paths + j;
-                        out_min[at] = sgm_step(
-                            &cost[i * n..(i + 1) * n],
-                            p,
-                            pm,
-                            c.o.p1,
-                            c.o.p2,
-                            &mut out[at * dp..(at + 1) * dp],
-                            &mut acc[i * n..(i + 1) * n],
-                        );
-                    }
-                }
-            });
-        std::mem::swap(&mut prev, &mut cur);
-        std::mem::swap(&mut prev_min, &mut cur_min);
+/// The right census words of a `w × h` plane as `planes` byte planes per row, columns
+/// reversed (see [`SweepContext::right_planes`]).
+fn reversed_byte_planes(words: &[u64], w: usize, planes: usize) -> Vec<u8> {
+    let mut out = vec![0u8; words.len() * planes];
+    if w == 0 {
+        return out;
     }
+    out.par_chunks_mut(w * planes)
+        .zip(words.par_chunks(w))
+        .for_each(|(dst, row)| {
+            for (p, plane) in dst.chunks_exact_mut(w).enumerate() {
+                for (b, &word) in plane.iter_mut().zip(row.iter().rev()) {
+                    *b = (word >> (8 * p)) as u8;
+                }
+            }
+        });
+    out
+}
+
+/// Census costs of left pixel `x` against every disparity, as [`census_cost_row`] computes
+/// them: `out[k]` for `min_d + k`, `invalid` where the right pixel is outside the row.
+/// `right_rev` holds the row's right words as byte planes with reversed columns.
+#[inline(always)]
+fn census_cost_pixel(
+    word: u64,
+    right_rev: &[u8],
+    w: usize,
+    x: usize,
+    min_d: i32,
+    invalid: u8,
+    out: &mut [u8],
+) {
+    let n = out.len();
+    let (lo, hi) = valid_range(x, w, min_d, n);
+    out[..lo].fill(invalid);
+    out[hi..].fill(invalid);
+    if lo >= hi {
+        return;
+    }
+    // Disparity k ↔ right column x − min_d − k ↔ reversed column w − 1 − x + min_d + k.
+    let start = (w as i64 - 1 - x as i64 + i64::from(min_d) + lo as i64) as usize;
+    let o = &mut out[lo..hi];
+    let bytes = word.to_le_bytes();
+    // One pass over the disparities with every plane's bytes at once (1, 3 or 6 planes for
+    // the census windows 3, 5 and 7).
+    match right_rev.len() / w {
+        1 => popcount_planes::<1>(bytes, right_rev, w, start, o),
+        3 => popcount_planes::<3>(bytes, right_rev, w, start, o),
+        6 => popcount_planes::<6>(bytes, right_rev, w, start, o),
+        _ => {
+            o.fill(0);
+            let len = o.len();
+            for (plane, &b) in right_rev.chunks_exact(w).zip(&bytes) {
+                for (d, &s) in o.iter_mut().zip(&plane[start..start + len]) {
+                    *d += (b ^ s).count_ones() as u8;
+                }
+            }
+            for d in o.iter_mut() {
+                *d = d.wrapping_mul(COST_SCALE as u8);
+            }
+        }
+    }
+}
+
+/// `o[k] = COST_SCALE · Σ_p popcount(bytes[p] ^ plane_p[start + k])` over `PL` byte planes of
+/// `w` bytes each.
+#[allow(clippy::needless_range_loop)]
+#[inline(always)]
+fn popcount_planes<const PL: usize>(
+    bytes: [u8; 8],
+    right_rev: &[u8],
+    w: usize,
+    start: usize,
+    o: &mut [u8],
+) {
+    let len = o.len();
+    let src: [&[u8]; PL] = std::array::from_fn(|p| &right_rev[p * w + start..p * w + start + len]);
+    for k in 0..len {
+        let mut c = 0u8;
+        for p in 0..PL {
+            c += (bytes[p] ^ src[p][k]).count_ones() as u8;
+        }
+        o[k] = c.wrapping_mul(COST_SCALE as u8);
+    }
+}
+
+/// `P` SGM steps of one pixel fused into one pass over the disparities: for each path `p`,
+/// what [`sgm_step`] computes from `prev[p]`, `prev_min[p]` into `out[p]`, with the sum of the
+/// `P` new costs written to `sum` (or added to it, `ADD`). The cost is loaded once, the sum
+/// stored once. Returns the minima of the new costs.
+// Indexing (not zipped iterators) over slices cut to one length keeps the loop bounds-check
+// free and vectorized over k in u16 lanes; the loop over p is unrolled.
+#[allow(clippy::needless_range_loop)]
+#[inline(always)]
+fn sgm_steps<const P: usize, const ADD: bool>(
+    cost: &[u8],
+    prev: [&[u16]; P],
+    prev_min: [u16; P],
+    p1: u16,
+    p2: u16,
+    out: [&mut [u16]; P],
+    sum: &mut [u16],
+) -> [u16; P] {
+    let n = cost.len();
+    let sum = &mut sum[..n];
+    let lower = prev.map(|p| &p[..n]);
+    let centre = prev.map(|p| &p[1..n + 1]);
+    let upper = prev.map(|p| &p[2..n + 2]);
+    let out = out.map(|o| &mut o[1..n + 1]);
+    let jump = prev_min.map(|m| m.saturating_add(p2));
+    let mut mins = [u16::MAX; P];
+    for k in 0..n {
+        let c = u16::from(cost[k]);
+        let mut s = if ADD { sum[k] } else { 0 };
+        for p in 0..P {
+            let best = centre[p][k]
+                .min(lower[p][k].saturating_add(p1))
+                .min(upper[p][k].saturating_add(p1))
+                .min(jump[p]);
+            // best ≥ prev_min: every candidate is (see `sgm_step`).
+            let v = best.wrapping_sub(prev_min[p]).wrapping_add(c);
+            out[p][k] = v;
+            s = s.wrapping_add(v);
+            mins[p] = mins[p].min(v);
+        }
+        sum[k] = s;
+    }
+    mins
+}
+
+/// The path states of one sweep: the horizontal path's last pixel, and per pixel of the
+/// previous row the states of the paths coming from it.
+struct SweepState {
+    /// `n + 2` values per state: sentinels around the costs of the `n` disparities.
+    dp: usize,
+    /// The horizontal path at the previous pixel of the row, and the one being written.
+    h_prev: Vec<u16>,
+    h_cur: Vec<u16>,
+    /// `[path][x][dp]` for the paths from the previous row (3 with diagonals, else 1), of the
+    /// previous row and of the current one; their minima `[path][x]`.
+    prev: Vec<u16>,
+    cur: Vec<u16>,
+    prev_min: Vec<u16>,
+    cur_min: Vec<u16>,
+    /// The state before the first pixel of a path: zeros between sentinels.
+    zero: Vec<u16>,
+    cost: Vec<u8>,
+}
+
+impl SweepState {
+    fn new(c: &SweepContext<'_>) -> SweepState {
+        let dirs = if c.diagonals { 3 } else { 1 };
+        let zero = path_start(c.n);
+        // Every state starts as `zero`, so the first row needs no special case; the sentinels
+        // are never overwritten.
+        let rows: Vec<u16> = (0..dirs * c.w).flat_map(|_| zero.iter().copied()).collect();
+        SweepState {
+            dp: c.n + 2,
+            h_prev: zero.clone(),
+            h_cur: zero.clone(),
+            prev: rows.clone(),
+            cur: rows,
+            prev_min: vec![0; dirs * c.w],
+            cur_min: vec![0; dirs * c.w],
+            zero,
+            cost: vec![0; c.n],
+        }
+    }
+}
+
+/// One row of a sweep with `P` paths (the horizontal one first): costs of every pixel, the
+/// path steps in the sweep's direction along the row, and the sum of the `P` paths written to
+/// `sum` (the row's `w × n` aggregated costs) or added to it (`ADD`).
+#[inline(always)]
+fn sweep_row_paths<const P: usize, const ADD: bool>(
+    c: &SweepContext<'_>,
+    y: usize,
+    down: bool,
+    st: &mut SweepState,
+    sum: &mut [u16],
+) {
+    let (w, n, dp) = (c.w, c.n, st.dp);
+    let lrow = &c.left[y * w..(y + 1) * w];
+    let rrow = &c.right_planes[y * w * c.planes..(y + 1) * w * c.planes];
+    let mut h_min = 0u16;
+    for i in 0..w {
+        // Downward sweeps run left to right, upward ones right to left (the two horizontal
+        // paths); the paths from the previous row read only that row, so order is free there.
+        let x = if down { i } else { w - 1 - i };
+        census_cost_pixel(lrow[x], rrow, w, x, c.min_d, c.invalid, &mut st.cost);
+        let (prev, prev_min, zero) = (&st.prev, &st.prev_min, &st.zero);
+        // Path p ≥ 1 comes from column x + shift of the previous row (none at the borders).
+        let source = |p: usize| {
+            let shift = if P == 4 { p as isize - 2 } else { 0 };
+            let xs = x as isize + shift;
+            (xs >= 0 && (xs as usize) < w).then(|| (p - 1) * w + xs as usize)
+        };
+        let prevs: [&[u16]; P] = std::array::from_fn(|p| match p {
+            0 if i > 0 => &st.h_prev[..],
+            0 => &zero[..],
+            _ => source(p).map_or(&zero[..], |at| &prev[at * dp..(at + 1) * dp]),
+        });
+        let mins: [u16; P] = std::array::from_fn(|p| match p {
+            0 if i > 0 => h_min,
+            0 => 0,
+            _ => source(p).map_or(0, |at| prev_min[at]),
+        });
+        let mut h_out = Some(&mut st.h_cur[..]);
+        let mut rows = st.cur.chunks_exact_mut(w * dp);
+        let outs: [&mut [u16]; P] = std::array::from_fn(|p| {
+            if p == 0 {
+                h_out.take().unwrap_or_default()
+            } else {
+                rows.next()
+                    .map(|r| &mut r[x * dp..(x + 1) * dp])
+                    .unwrap_or_default()
+            }
+        });
+        let new_min = sgm_steps::<P, ADD>(
+            &st.cost,
+            prevs,
+            mins,
+            c.p1,
+            c.p2,
+            outs,
+            &mut sum[x * n..(x + 1) * n],
+        );
+        h_min = new_min[0];
+        for (p, &m) in new_min.iter().enumerate().skip(1) {
+            st.cur_min[(p - 1) * w + x] = m;
+        }
+        std::mem::swap(&mut st.h_prev, &mut st.h_cur);
+    }
+    std::mem::swap(&mut st.prev, &mut st.cur);
+    std::mem::swap(&mut st.prev_min, &mut st.cur_min);
+}
+
+sgm_kernel! {
+/// [`sweep_row_paths`] for the context's path count; the one dispatch per row.
+fn sweep_row<'a>(
+    c: &SweepContext<'a>,
+    y: usize,
+    down: bool,
+    add: bool,
+    st: &mut SweepState,
+    sum: &mut [u16],
+) {
+    match (c.diagonals, add) {
+        (true, false) => sweep_row_paths::<4, false>(c, y, down, st, sum),
+        (true, true) => sweep_row_paths::<4, true>(c, y, down, st, sum),
+        (false, false) => sweep_row_paths::<2, false>(c, y, down, st, sum),
+        (false, true) => sweep_row_paths::<2, true>(c, y, down, st, sum),
+    }
+}
+}
+
+/// One row of the aggregated volume and of the disparity map, shared by the two sweeps.
+struct RowSlot<'a> {
+    sum: &'a mut [u16],
+    disp: &'a mut [f32],
+    /// How many sweeps have added their paths: the second one completes the row and decides.
+    visits: u8,
+}
+
+/// One sweep over all rows, top to bottom (`down`: the left-to-right path and the three from
+/// the row above) or bottom to top (the others). The first sweep to reach a row writes its
+/// paths' sum, the second adds its own and decides the row's disparities. Integer sums do not
+/// depend on which sweep comes first, so the result does not depend on the threads.
+fn sweep(c: &SweepContext<'_>, o: &StereoOptions, rows: &[Mutex<RowSlot<'_>>], down: bool) {
+    let mut st = SweepState::new(c);
+    let mut scratch = DecideScratch::new(c.w);
+    for i in 0..c.h {
+        let y = if down { i } else { c.h - 1 - i };
+        // The lock is held for the whole row; the other sweep waits at most one row, where
+        // the two meet. Neither sweep holds two locks or waits on other work meanwhile.
+        let mut slot = rows[y].lock().unwrap_or_else(PoisonError::into_inner);
+        let slot = &mut *slot;
+        sweep_row(c, y, down, slot.visits > 0, &mut st, slot.sum);
+        slot.visits += 1;
+        if slot.visits == 2 {
+            decide_sgm_row(slot.sum, c.w, o, slot.disp, &mut scratch);
+        }
+    }
+}
+
+/// The SGM disparity map (before the speckle filter) of census words `left`, `right`
+/// (`w × h`): the 8 (or 4) paths run as two sweeps, down and up, at the same time when a
+/// second thread is free; the volume of summed costs is written by the first sweep to reach a
+/// row and completed by the second, which decides the row right away.
+fn sgm_disparity(left: &[u64], right: &[u64], w: usize, h: usize, o: &StereoOptions) -> Vec<f32> {
+    let n = o.num_disparities;
+    let bits = o.block_size * o.block_size - 1;
+    let planes = bits.div_ceil(8);
+    let right_planes = reversed_byte_planes(right, w, planes);
+    let ctx = SweepContext {
+        left,
+        right_planes: &right_planes,
+        planes,
+        w,
+        h,
+        n,
+        min_d: o.min_disparity,
+        invalid: (bits as u16 * COST_SCALE) as u8,
+        p1: o.p1,
+        p2: o.p2,
+        diagonals: o.paths == 8,
+    };
+    let mut disp = vec![f32::NAN; w * h];
+    // Every row is written by its first sweep before it is read.
+    let mut sum = ocellus_engine::buffer::zeroed::<u16>(w * n * h);
+    let rows: Vec<Mutex<RowSlot<'_>>> = sum
+        .chunks_mut(w * n)
+        .zip(disp.chunks_mut(w))
+        .map(|(sum, disp)| {
+            Mutex::new(RowSlot {
+                sum,
+                disp,
+                visits: 0,
+            })
+        })
+        .collect();
+    rayon::join(
+        || sweep(&ctx, o, &rows, true),
+        || sweep(&ctx, o, &rows, false),
+    );
+    drop(rows);
+    disp
+}
+
+/// Buffers of [`decide_sgm_row`], kept across rows.
+struct DecideScratch {
+    winner: Vec<usize>,
+    /// The right view's best cost and its disparity index, by reversed column `w − 1 − x_r`.
+    right_cost: Vec<u16>,
+    right_k: Vec<u16>,
+}
+
+impl DecideScratch {
+    fn new(w: usize) -> DecideScratch {
+        DecideScratch {
+            winner: vec![usize::MAX; w],
+            right_cost: vec![u16::MAX; w],
+            right_k: vec![0; w],
+        }
+    }
+}
+
+/// The first index of the smallest value of a non-empty slice, and the value.
+#[inline(always)]
+fn first_min_u16(s: &[u16]) -> (usize, u16) {
+    // One vectorized pass: per lane the smallest value and the first block holding it
+    // (strict `<`), then the first index among the lanes holding the overall minimum.
+    const LANES: usize = 32;
+    let mut value = [u16::MAX; LANES];
+    let mut block = [0u16; LANES];
+    let blocks = s.chunks_exact(LANES);
+    let rest = blocks.remainder();
+    for (b, chunk) in blocks.enumerate() {
+        let b = b as u16;
+        for i in 0..LANES {
+            let better = chunk[i] < value[i];
+            value[i] = if better { chunk[i] } else { value[i] };
+            block[i] = if better { b } else { block[i] };
+        }
+    }
+    let mut best = (usize::MAX, u16::MAX);
+    for i in 0..LANES {
+        let at = usize::from(block[i]) * LANES + i;
+        if value[i] < best.1 || (value[i] == best.1 && at < best.0) {
+            best = (at, value[i]);
+        }
+    }
+    let base = s.len() - rest.len();
+    for (i, &v) in rest.iter().enumerate() {
+        if v < best.1 {
+            best = (base + i, v);
+        }
+    }
+    if best.0 == usize::MAX {
+        best.0 = 0;
+    }
+    best
+}
+
+sgm_kernel! {
+/// [`decide_row`] for the u16 SGM costs, with the same results: the winner scan and the right
+/// view's winners vectorized over the disparities. The right view's winner at `x_r` is the
+/// first `k` (smallest) of least cost among the left pixels `x = x_r + min_d + k`, the order
+/// in which `decide_row` visits them.
+fn decide_sgm_row(costs: &[u16], w: usize, o: &StereoOptions, out: &mut [f32], s: &mut DecideScratch) {
+    let n = o.num_disparities;
+    let min_d = o.min_disparity;
+    for (x, (slot, dst)) in s.winner.iter_mut().zip(out.iter_mut()).enumerate() {
+        *dst = f32::NAN;
+        *slot = usize::MAX;
+        let (lo, hi) = valid_range(x, w, min_d, n);
+        if lo >= hi {
+            continue;
+        }
+        let c = &costs[x * n..(x + 1) * n];
+        let (i, best) = first_min_u16(&c[lo..hi]);
+        let k = lo + i;
+        if o.uniqueness_ratio > 0.0 {
+            let below = c[lo..k.saturating_sub(1).max(lo)].iter().copied().min();
+            let above = c[(k + 2).min(hi)..hi].iter().copied().min();
+            let limit = f64::from(best) * 100.0;
+            let keep = 100.0 - o.uniqueness_ratio;
+            if [below, above]
+                .into_iter()
+                .flatten()
+                .any(|v| f64::from(v) * keep <= limit)
+            {
+                continue;
+            }
+        }
+        let mut d = f64::from(min_d) + k as f64;
+        if o.subpixel && k > lo && k + 1 < hi {
+            let (a, b, e) = (f64::from(c[k - 1]), f64::from(best), f64::from(c[k + 1]));
+            let denom = match o.subpixel_fit {
+                SubpixelFit::Parabola => a + e - 2.0 * b,
+                _ => a.max(e) - b,
+            };
+            if denom > 0.0 {
+                d += (a - e) / (2.0 * denom);
+            }
+        }
+        *slot = k;
+        *dst = d as f32;
+    }
+    if o.lr_max_diff < 0.0 {
+        return;
+    }
+    // Every S < u16::MAX (the bound checked in `StereoOptions::from_params`), so the first
+    // candidate of a right pixel always replaces the initial value.
+    s.right_cost.fill(u16::MAX);
+    s.right_k.fill(0);
+    for x in 0..w {
+        let (lo, hi) = valid_range(x, w, min_d, n);
+        if lo >= hi {
+            continue;
+        }
+        let start = (w as i64 - 1 - x as i64 + i64::from(min_d) + lo as i64) as usize;
+        let len = hi - lo;
+        let c = &costs[x * n + lo..x * n + hi];
+        let best = &mut s.right_cost[start..start + len];
+        let best_k = &mut s.right_k[start..start + len];
+        let mut k = lo as u16;
+        for ((&v, b), bk) in c.iter().zip(best.iter_mut()).zip(best_k.iter_mut()) {
+            let better = v < *b;
+            *b = if better { v } else { *b };
+            *bk = if better { k } else { *bk };
+            k = k.wrapping_add(1);
+        }
+    }
+    for (x, (&k, dst)) in s.winner.iter().zip(out.iter_mut()).enumerate() {
+        if k == usize::MAX {
+            continue;
+        }
+        let xr = x as i64 - i64::from(min_d) - k as i64;
+        let kr = s.right_k[(w as i64 - 1 - xr) as usize];
+        if (f64::from(kr) - k as f64).abs() > o.lr_max_diff {
+            *dst = f32::NAN;
+        }
+    }
+}
 }
 
 /// Costs the decision can compare.
@@ -955,21 +1335,16 @@ pub fn disparity_map(
     if cells.checked_mul(4).is_none() {
         return Err(too_large);
     }
-    let mut disp = vec![f32::NAN; w * h];
-    match o.method {
+    let mut disp = match o.method {
         StereoMethod::Sgm => {
-            let cl = census(left, w, h, o.block_size);
-            let cr = census(right, w, h, o.block_size);
-            let sum = sgm_aggregate(&cl, &cr, w, h, o);
-            disp.par_chunks_mut(w * ROWS_PER_TASK)
-                .zip(sum.par_chunks(row * ROWS_PER_TASK))
-                .for_each(|(dst, costs)| {
-                    for (d, c) in dst.chunks_mut(w).zip(costs.chunks(row)) {
-                        decide_row(c, w, o, d);
-                    }
-                });
+            let (cl, cr) = rayon::join(
+                || census(left, w, h, o.block_size),
+                || census(right, w, h, o.block_size),
+            );
+            sgm_disparity(&cl, &cr, w, h, o)
         }
         StereoMethod::Bm => {
+            let mut disp = vec![f32::NAN; w * h];
             let planes = BmPlanes::new(left, right, w, h, o);
             disp.par_chunks_mut(w * ROWS_PER_TASK)
                 .enumerate()
@@ -980,8 +1355,9 @@ pub fn disparity_map(
                         decide_row(&costs, w, o, d);
                     }
                 });
+            disp
         }
-    }
+    };
     speckle_filter(&mut disp, w, h, o.speckle_window_size, o.speckle_range);
     Ok(disp)
 }
@@ -1551,6 +1927,235 @@ mod tests {
                 }
                 Err(e) => prop_assert!(w == 0 || h == 0, "{}", e),
             }
+        }
+    }
+
+    /// The SGM volume as first written: each path in its own pass over the image (horizontal
+    /// paths per row, the others row after row), every step by [`sgm_step`] — the reference the
+    /// fused sweeps must reproduce exactly.
+    fn reference_aggregate(
+        left: &[u64],
+        right: &[u64],
+        w: usize,
+        h: usize,
+        o: &StereoOptions,
+    ) -> Vec<u16> {
+        let n = o.num_disparities;
+        let row = w * n;
+        let mut sum = vec![0u16; row * h];
+        let invalid = (((o.block_size * o.block_size) - 1) as u16 * COST_SCALE) as u8;
+        let (p1, p2) = (o.p1, o.p2);
+        let mut cost = vec![0u8; row];
+        let step = |x: usize, cost: &[u8], state: &mut (Vec<u16>, u16), acc: &mut [u16]| {
+            let mut out = path_start(n);
+            state.1 = sgm_step(
+                &cost[x * n..(x + 1) * n],
+                &state.0,
+                state.1,
+                p1,
+                p2,
+                &mut out,
+                acc,
+            );
+            state.0 = out;
+        };
+        for y in 0..h {
+            let (l, r) = (&left[y * w..(y + 1) * w], &right[y * w..(y + 1) * w]);
+            census_cost_row(l, r, 0, o.min_disparity, n, invalid, &mut cost);
+            let acc = &mut sum[y * row..(y + 1) * row];
+            for xs in [(0..w).collect::<Vec<_>>(), (0..w).rev().collect()] {
+                let mut state = (path_start(n), 0);
+                for x in xs {
+                    step(x, &cost, &mut state, &mut acc[x * n..(x + 1) * n]);
+                }
+            }
+        }
+        let shifts: &[isize] = if o.paths == 8 { &[-1, 0, 1] } else { &[0] };
+        for &s in shifts {
+            for down in [true, false] {
+                let mut states = vec![(path_start(n), 0u16); w];
+                for i in 0..h {
+                    let y = if down { i } else { h - 1 - i };
+                    let (l, r) = (&left[y * w..(y + 1) * w], &right[y * w..(y + 1) * w]);
+                    census_cost_row(l, r, 0, o.min_disparity, n, invalid, &mut cost);
+                    let mut next = Vec::with_capacity(w);
+                    for x in 0..w {
+                        let xs = x as isize + s;
+                        let mut state = if i == 0 || xs < 0 || xs >= w as isize {
+                            (path_start(n), 0)
+                        } else {
+                            states[xs as usize].clone()
+                        };
+                        let at = y * row + x * n;
+                        step(x, &cost, &mut state, &mut sum[at..at + n]);
+                        next.push(state);
+                    }
+                    states = next;
+                }
+            }
+        }
+        sum
+    }
+
+    /// [`disparity_map`] for SGM through the reference volume and the generic decision.
+    fn reference_sgm(l: &[f32], r: &[f32], w: usize, h: usize, o: &StereoOptions) -> Vec<f32> {
+        let (cl, cr) = (census(l, w, h, o.block_size), census(r, w, h, o.block_size));
+        let sum = reference_aggregate(&cl, &cr, w, h, o);
+        let n = o.num_disparities;
+        let mut disp = vec![f32::NAN; w * h];
+        for (d, c) in disp.chunks_mut(w).zip(sum.chunks(w * n)) {
+            decide_row(c, w, o, d);
+        }
+        speckle_filter(&mut disp, w, h, o.speckle_window_size, o.speckle_range);
+        disp
+    }
+
+    fn bits(v: &[f32]) -> Vec<u32> {
+        v.iter().map(|v| v.to_bits()).collect()
+    }
+
+    #[test]
+    fn fused_steps_equal_single_steps() {
+        let r = randoms(77, 4000);
+        let mut at = 0;
+        let mut next = |m: f64| {
+            at += 1;
+            (r[at % r.len()] * m) as u16
+        };
+        for n in [1, 5, 16, 31, 48, 67] {
+            let cost: Vec<u8> = (0..n).map(|_| next(97.0) as u8).collect();
+            let (p1, p2) = (next(20.0), 20 + next(100.0));
+            let prev: Vec<Vec<u16>> = (0..4)
+                .map(|_| {
+                    let mut v = path_start(n);
+                    for s in &mut v[1..n + 1] {
+                        *s = next(400.0);
+                    }
+                    v
+                })
+                .collect();
+            let prev_min: [u16; 4] =
+                std::array::from_fn(|p| prev[p][1..n + 1].iter().copied().min().unwrap_or(0));
+            let init: Vec<u16> = (0..n).map(|_| next(1000.0)).collect();
+            // The reference: four single steps adding into `init`.
+            let mut acc = init.clone();
+            let mut want = Vec::new();
+            for p in 0..4 {
+                let mut out = path_start(n);
+                let m = sgm_step(&cost, &prev[p], prev_min[p], p1, p2, &mut out, &mut acc);
+                want.push((out, m));
+            }
+            for add in [false, true] {
+                let mut outs: [Vec<u16>; 4] = std::array::from_fn(|_| path_start(n));
+                let mut sum = init.clone();
+                let [a, b, c, d] = &mut outs;
+                let prevs = [&prev[0][..], &prev[1][..], &prev[2][..], &prev[3][..]];
+                let outs_ref = [&mut a[..], &mut b[..], &mut c[..], &mut d[..]];
+                let mins = if add {
+                    sgm_steps::<4, true>(&cost, prevs, prev_min, p1, p2, outs_ref, &mut sum)
+                } else {
+                    sgm_steps::<4, false>(&cost, prevs, prev_min, p1, p2, outs_ref, &mut sum)
+                };
+                for p in 0..4 {
+                    assert_eq!(outs[p], want[p].0, "n {n}, path {p}");
+                    assert_eq!(mins[p], want[p].1);
+                }
+                let expected: Vec<u16> = if add {
+                    acc.clone()
+                } else {
+                    (0..n).map(|k| acc[k].wrapping_sub(init[k])).collect()
+                };
+                assert_eq!(sum, expected, "n {n}, add {add}");
+            }
+        }
+    }
+
+    #[test]
+    fn fast_decision_equals_the_generic_one() {
+        // Costs from a small range make ties everywhere, in the left and the right winners.
+        let (w, n) = (37, 19);
+        for (seed, range) in [(1, 4.0), (2, 50.0), (3, 3000.0)] {
+            let costs: Vec<u16> = randoms(seed, w * n)
+                .iter()
+                .map(|r| (r * range) as u16)
+                .collect();
+            for min_d in [-5, 0, 3, 30] {
+                for (uniqueness_ratio, lr_max_diff) in
+                    [(0.0, 0.0), (10.0, 1.0), (0.0, -1.0), (5.0, 2.5)]
+                {
+                    for fit in [SubpixelFit::Equiangular, SubpixelFit::Parabola] {
+                        let o = StereoOptions {
+                            min_disparity: min_d,
+                            num_disparities: n,
+                            uniqueness_ratio,
+                            lr_max_diff,
+                            subpixel_fit: fit,
+                            ..StereoOptions::default()
+                        };
+                        let mut want = vec![0f32; w];
+                        decide_row(&costs, w, &o, &mut want);
+                        let mut got = vec![0f32; w];
+                        decide_sgm_row(&costs, w, &o, &mut got, &mut DecideScratch::new(w));
+                        assert_eq!(bits(&got), bits(&want), "{o:?}");
+                    }
+                }
+            }
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(40))]
+        #[test]
+        fn sgm_equals_the_reference_implementation(
+            w in 1usize..40, h in 1usize..14, min_d in -12i32..20, n in 1usize..40,
+            eight in any::<bool>(), block in prop::sample::select(vec![3usize, 5, 7]),
+            p1 in 0u16..40, extra in 0u16..200, uniqueness in prop::sample::select(vec![0.0, 10.0]),
+            lr in prop::sample::select(vec![-1.0, 0.0, 1.0, 2.0]), subpixel in any::<bool>(),
+            shift in 0usize..12, noise in any::<bool>(), seed in 0u64..1000,
+        ) {
+            let o = StereoOptions {
+                min_disparity: min_d,
+                num_disparities: n,
+                block_size: block,
+                p1,
+                p2: p1 + extra,
+                paths: if eight { 8 } else { 4 },
+                uniqueness_ratio: uniqueness,
+                lr_max_diff: lr,
+                subpixel,
+                speckle_window_size: 3,
+                ..StereoOptions::default()
+            };
+            // A shifted texture (real matches) or two unrelated ones.
+            let (l, r) = if noise {
+                (texture(w, h, seed), texture(w, h, seed + 1))
+            } else {
+                shifted_pair(w, h, shift, seed)
+            };
+            let got = disparity_map(&l, &r, w, h, &o).unwrap();
+            prop_assert_eq!(bits(&got), bits(&reference_sgm(&l, &r, w, h, &o)));
+        }
+    }
+
+    #[test]
+    fn sgm_equals_the_reference_on_a_larger_scene() {
+        // Wider than the 64-lane vectors, more disparities than one, a step edge with occlusion.
+        let (w, h) = (150, 40);
+        let (l, r) = step_pair(w, h, 3, 11);
+        for (n, paths, min_d) in [(20, 8, 0), (67, 8, -3), (33, 4, 2)] {
+            let o = StereoOptions {
+                min_disparity: min_d,
+                num_disparities: n,
+                paths,
+                p1: 12,
+                p2: 150,
+                uniqueness_ratio: 0.0,
+                lr_max_diff: 2.0,
+                ..StereoOptions::default()
+            };
+            let got = disparity_map(&l, &r, w, h, &o).unwrap();
+            assert_eq!(bits(&got), bits(&reference_sgm(&l, &r, w, h, &o)), "n {n}");
+            assert!(got.iter().filter(|v| !v.is_nan()).count() > w * h / 2);
         }
     }
 }
