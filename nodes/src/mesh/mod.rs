@@ -5,3 +5,5 @@ pub mod fit;
 pub mod icp;
 pub mod kdtree;
 pub mod pointcloud;
+pub mod marching_cubes;
+pub mod poisson;
