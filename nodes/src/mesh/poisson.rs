@@ -1099,7 +1099,7 @@ mod tests {
             ..PoissonOptions::default()
         };
         let closed = reconstruct(&points, &normals, &base).unwrap();
-        assert!(closed_euler(&closed.surface).is_ok());
+        assert_eq!(closed.trimmed_vertices, 0);
         let trimmed = reconstruct(
             &points,
             &normals,
@@ -1111,7 +1111,8 @@ mod tests {
         .unwrap();
         assert!(trimmed.trimmed_vertices > 0);
         let low = |s: &IsoSurface| s.positions.iter().filter(|p| p[2] < -0.5).count();
-        assert!(low(&trimmed.surface) < low(&closed.surface) / 4, "{} {}", low(&trimmed.surface), low(&closed.surface));
+        let (kept, all) = (low(&trimmed.surface), low(&closed.surface));
+        assert!(all > 100 && kept < all / 4, "{kept} of {all}");
     }
 
     #[test]
