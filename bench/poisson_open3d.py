@@ -12,7 +12,7 @@ Chamfer = the sum of the two means. Time: Open3D's call alone; Ocellus's `poisso
 `--profile` (median of --repeat runs, file reading excluded).
 
 Usage (release build first: cargo build --release):
-  python3 bench/poisson_open3d.py [--depths 7 8 9] [--threads 1 2] [--repeat 3]
+  python3 bench/poisson_open3d.py [--depths 7 8 9] [--threads 1 2] [--repeat 3] [--binary B]
 Needs numpy and open3d (pip install open3d numpy).
 """
 import argparse
@@ -29,7 +29,6 @@ import open3d as o3d
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 POINTS = os.path.join(ROOT, "graphs", "data", "poisson_points.ply")
 GRAPH = os.path.join(ROOT, "graphs", "poisson.ron")
-BINARY = os.path.join(ROOT, "target", "release", "ocellus")
 
 RING, TUBE = 0.6, 0.2
 BALL_CENTRE, BALL = np.array([0.6, 0.0, 0.2]), 0.3
@@ -84,7 +83,7 @@ def score(mesh, truth):
     return to_truth, to_mesh
 
 
-def open3d_run(depth, threads, repeat):
+def open3d_run(binary, depth, threads, repeat):
     pcd = o3d.io.read_point_cloud(POINTS)
     times = []
     for _ in range(repeat):
@@ -95,10 +94,10 @@ def open3d_run(depth, threads, repeat):
     return mesh, float(np.median(times))
 
 
-def ocellus_run(depth, threads, repeat):
+def ocellus_run(binary, depth, threads, repeat):
     with tempfile.TemporaryDirectory() as out:
         prof = os.path.join(out, "profile.json")
-        subprocess.run([BINARY, "run", GRAPH, "--set", f"poisson.depth={depth}",
+        subprocess.run([binary, "run", GRAPH, "--set", f"poisson.depth={depth}",
                         "--threads", str(threads), "--repeat", str(repeat), "--profile", prof,
                         "--emit", out], check=True, stdout=subprocess.DEVNULL)
         ms = json.load(open(prof))["nodes"]["poisson"]["median_ms"]
@@ -111,6 +110,7 @@ def main():
     ap.add_argument("--depths", type=int, nargs="+", default=[7, 8])
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--binary", default=os.path.join(ROOT, "target", "release", "ocellus"))
     args = ap.parse_args()
     truth = truth_samples(100_000, np.random.default_rng(1))
     print(f"open3d {o3d.__version__}, {len(truth)} truth samples", file=sys.stderr)
@@ -119,7 +119,7 @@ def main():
     for depth in args.depths:
         for threads in args.threads:
             for name, run in (("Ocellus", ocellus_run), ("Open3D", open3d_run)):
-                mesh, seconds = run(depth, threads, args.repeat)
+                mesh, seconds = run(args.binary, depth, threads, args.repeat)
                 a, b = score(mesh, truth)
                 print(f"| {depth} | {threads} | {name} | {a:.5f} | {b:.5f} | {a + b:.5f} | "
                       f"{len(mesh.triangles)} | {seconds:.3f} |", flush=True)

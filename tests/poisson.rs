@@ -99,10 +99,7 @@ fn on_primitive(k: usize, rng: &mut Rng) -> ([f64; 3], [f64; 3]) {
         },
         1 => {
             let n = rng.direction();
-            (
-                [0, 1, 2].map(|a| BALL_CENTRE[a] + BALL * n[a]),
-                n,
-            )
+            ([0, 1, 2].map(|a| BALL_CENTRE[a] + BALL * n[a]), n)
         }
         _ => {
             let side = TAU * BAR * 2.0 * BAR_HALF;
@@ -163,7 +160,12 @@ fn fixture() -> PointCloud {
 #[test]
 fn poisson_fixture_is_reproducible() {
     let dir = temp_dir("poisson-fixture");
-    let files = emit_value(&dir, "poisson_points", &Value::PointCloud(Arc::new(fixture()))).unwrap();
+    let files = emit_value(
+        &dir,
+        "poisson_points",
+        &Value::PointCloud(Arc::new(fixture())),
+    )
+    .unwrap();
     let generated = std::fs::read(&files[0]).unwrap();
     std::fs::remove_dir_all(&dir).unwrap();
     let path = root().join("graphs/data/poisson_points.ply");
@@ -242,9 +244,13 @@ fn poisson_graph_reconstructs_the_shape() {
         }
     }
     assert!(directed.values().all(|&c| c == 1));
-    assert!(directed.keys().all(|&(a, b)| directed.contains_key(&(b, a))));
-    let euler = mesh.positions.len() as i64 - directed.len() as i64 / 2
-        + mesh.triangles.len() as i64;
+    assert!(
+        directed
+            .keys()
+            .all(|&(a, b)| directed.contains_key(&(b, a)))
+    );
+    let euler =
+        mesh.positions.len() as i64 - directed.len() as i64 / 2 + mesh.triangles.len() as i64;
     assert_eq!(euler, -2, "Euler characteristic of a genus-2 surface");
     // Accuracy against the true surface, both ways (cell: 2.2 · 1.1 / 128 ≈ 0.019).
     let on_mesh = sample_mesh(&mesh, 200_000, 1);
@@ -265,7 +271,11 @@ fn poisson_graph_reconstructs_the_shape() {
             for dz in -2..=2 {
                 for dy in -2..=2 {
                     for dx in -2..=2 {
-                        for q in grid.get(&[c[0] + dx, c[1] + dy, c[2] + dz]).into_iter().flatten() {
+                        for q in grid
+                            .get(&[c[0] + dx, c[1] + dy, c[2] + dz])
+                            .into_iter()
+                            .flatten()
+                        {
                             best = best.min(length([0, 1, 2].map(|a| p[a] - q[a])));
                         }
                     }
