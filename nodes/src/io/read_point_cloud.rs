@@ -210,7 +210,11 @@ mod tests {
         let nan = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
             property float z\nend_header\n1 nan 2\n";
         let e = parse_point_cloud(nan.as_bytes()).unwrap_err();
-        assert_eq!(e.location(), Some(crate::io::read_mesh::Location::Line(8)), "{e}");
+        assert_eq!(
+            e.location(),
+            Some(crate::io::read_mesh::Location::Line(8)),
+            "{e}"
+        );
         let zero = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
             property float z\nproperty float nx\nproperty float ny\nproperty float nz\n\
             end_header\n1 2 3 0 0 0\n";

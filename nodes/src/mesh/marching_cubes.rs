@@ -158,7 +158,12 @@ struct Builder<'a> {
 impl Builder<'_> {
     fn value(&self, x: usize, y: usize, z: usize) -> f64 {
         let [nx, ny, _] = self.grid.dims;
-        self.grid.values.get(x + nx * (y + ny * z)).copied().unwrap_or(0.0) - self.iso
+        self.grid
+            .values
+            .get(x + nx * (y + ny * z))
+            .copied()
+            .unwrap_or(0.0)
+            - self.iso
     }
 
     fn push(&mut self, p: [f64; 3]) -> Result<u32, MarchingCubesError> {
@@ -476,7 +481,9 @@ pub(crate) mod tests {
         (0..n)
             .map(|_| {
                 let r = rng.uniform() * total;
-                let i = cumulative.partition_point(|&c| c < r).min(s.triangles.len() - 1);
+                let i = cumulative
+                    .partition_point(|&c| c < r)
+                    .min(s.triangles.len() - 1);
                 let [a, b, c] = s.triangles[i].map(|k| s.positions[k as usize]);
                 let (mut u, mut v) = (rng.uniform(), rng.uniform());
                 if u + v > 1.0 {
@@ -497,7 +504,12 @@ pub(crate) mod tests {
 
     /// The point of triangle `abc` closest to `p` (Ericson, "Real-Time Collision Detection",
     /// §5.1.5: Voronoi regions of the vertices, then the edges, then the face).
-    pub(crate) fn closest_on_triangle(p: [f64; 3], a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> [f64; 3] {
+    pub(crate) fn closest_on_triangle(
+        p: [f64; 3],
+        a: [f64; 3],
+        b: [f64; 3],
+        c: [f64; 3],
+    ) -> [f64; 3] {
         let at = |u: [f64; 3], s: f64, v: [f64; 3], t: f64| {
             [0, 1, 2].map(|k| a[k] + s * u[k] + t * v[k])
         };
@@ -569,7 +581,12 @@ pub(crate) mod tests {
             .collect();
         let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
         let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
-        [mean(&to_truth), max(&to_truth), mean(&to_surface), max(&to_surface)]
+        [
+            mean(&to_truth),
+            max(&to_truth),
+            mean(&to_surface),
+            max(&to_surface),
+        ]
     }
 
     #[test]
@@ -586,7 +603,10 @@ pub(crate) mod tests {
         ];
         for (p, want) in cases {
             let got = closest_on_triangle(p, a, b, c);
-            assert!((0..3).all(|k| (got[k] - want[k]).abs() < 1e-12), "{p:?}: {got:?}");
+            assert!(
+                (0..3).all(|k| (got[k] - want[k]).abs() < 1e-12),
+                "{p:?}: {got:?}"
+            );
         }
     }
 
@@ -616,7 +636,10 @@ pub(crate) mod tests {
             ];
             let centre = [0, 1, 2].map(|k| face.iter().map(|&c| corner(c)[k]).sum::<f64>() / 4.0);
             let outward = [0, 1, 2].map(|k| centre[k] - 0.5);
-            assert!((0..3).map(|k| n[k] * outward[k]).sum::<f64>() > 0.0, "{face:?}");
+            assert!(
+                (0..3).map(|k| n[k] * outward[k]).sum::<f64>() > 0.0,
+                "{face:?}"
+            );
         }
     }
 
@@ -657,16 +680,25 @@ pub(crate) mod tests {
             origin: [0.0; 3],
             spacing: 1.0,
         };
-        assert!(matches!(marching_cubes(g, 0.0), Err(MarchingCubesError::Size { .. })));
+        assert!(matches!(
+            marching_cubes(g, 0.0),
+            Err(MarchingCubesError::Size { .. })
+        ));
         let mut values = vec![0.0; 8];
         values[3] = f64::NAN;
-        let g = ScalarGrid { values: &values, ..g };
+        let g = ScalarGrid {
+            values: &values,
+            ..g
+        };
         assert_eq!(
             marching_cubes(g, 0.0),
             Err(MarchingCubesError::NonFinite { index: 3 })
         );
         let values = vec![1.0; 8];
-        let g = ScalarGrid { values: &values, ..g };
+        let g = ScalarGrid {
+            values: &values,
+            ..g
+        };
         assert_eq!(
             marching_cubes(g, f64::INFINITY),
             Err(MarchingCubesError::NonFinite { index: usize::MAX })
@@ -726,7 +758,10 @@ pub(crate) mod tests {
         let mut rng = SplitMix64::new(8);
         let truth: Vec<[f64; 3]> = (0..4000)
             .map(|_| {
-                let (u, v) = (rng.uniform() * std::f64::consts::TAU, rng.uniform() * std::f64::consts::TAU);
+                let (u, v) = (
+                    rng.uniform() * std::f64::consts::TAU,
+                    rng.uniform() * std::f64::consts::TAU,
+                );
                 let rr = big + small * v.cos();
                 [c + rr * u.cos(), c + rr * u.sin(), c + small * v.sin()]
             })

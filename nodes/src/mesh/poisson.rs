@@ -304,8 +304,11 @@ fn build_system(
 ) -> (System, Vec<f64>) {
     let n = level.nodes();
     let total = level.count();
-    let per_sample: Vec<([usize; 3], [(usize, f64); 8])> =
-        samples.points.par_iter().map(|u| level.corners(u)).collect();
+    let per_sample: Vec<([usize; 3], [(usize, f64); 8])> = samples
+        .points
+        .par_iter()
+        .map(|u| level.corners(u))
+        .collect();
     let active: Vec<usize> = match band {
         None => (0..total).collect(),
         Some(b) => {
@@ -531,9 +534,9 @@ fn solve_level(
             .zip(r.par_chunks_mut(CHUNK))
             .zip(p.par_chunks(CHUNK).zip(q.par_chunks(CHUNK)))
             .for_each(|((d, r), (p, q))| {
-                for k in 0..d.len() {
-                    d[k] += step * p[k];
-                    r[k] -= step * q[k];
+                for (((d, r), p), q) in d.iter_mut().zip(r.iter_mut()).zip(p).zip(q) {
+                    *d += step * p;
+                    *r -= step * q;
                 }
             });
         iterations += 1;
@@ -541,8 +544,8 @@ fn solve_level(
         z.par_chunks_mut(CHUNK)
             .zip(r.par_chunks(CHUNK).zip(sys.diagonal.par_chunks(CHUNK)))
             .for_each(|(z, (r, d))| {
-                for k in 0..z.len() {
-                    z[k] = r[k] / d[k];
+                for ((z, r), d) in z.iter_mut().zip(r).zip(d) {
+                    *z = r / d;
                 }
             });
         let rz_new = dot(&r, &z);
@@ -551,8 +554,8 @@ fn solve_level(
         p.par_chunks_mut(CHUNK)
             .zip(z.par_chunks(CHUNK))
             .for_each(|(p, z)| {
-                for k in 0..p.len() {
-                    p[k] = z[k] + ratio * p[k];
+                for (p, z) in p.iter_mut().zip(z) {
+                    *p = z + ratio * *p;
                 }
             });
     }
@@ -577,27 +580,29 @@ fn prolong(coarse: Level, values: &[f64]) -> Vec<f64> {
         }
     };
     let mut out = vec![0.0; fine.count()];
-    out.par_chunks_mut(nf * nf).enumerate().for_each(|(z, slab)| {
-        let tz = taps(z);
-        for y in 0..nf {
-            let ty = taps(y);
-            for x in 0..nf {
-                let tx = taps(x);
-                let mut v = 0.0;
-                for &(cz, wz) in &tz {
-                    for &(cy, wy) in &ty {
-                        for &(cx, wx) in &tx {
-                            let w = wx * wy * wz;
-                            if w != 0.0 {
-                                v += w * values[coarse.index(cx, cy, cz)];
+    out.par_chunks_mut(nf * nf)
+        .enumerate()
+        .for_each(|(z, slab)| {
+            let tz = taps(z);
+            for y in 0..nf {
+                let ty = taps(y);
+                for x in 0..nf {
+                    let tx = taps(x);
+                    let mut v = 0.0;
+                    for &(cz, wz) in &tz {
+                        for &(cy, wy) in &ty {
+                            for &(cx, wx) in &tx {
+                                let w = wx * wy * wz;
+                                if w != 0.0 {
+                                    v += w * values[coarse.index(cx, cy, cz)];
+                                }
                             }
                         }
                     }
+                    slab[x + nf * y] = v;
                 }
-                slab[x + nf * y] = v;
             }
-        }
-    });
+        });
     out
 }
 
@@ -739,7 +744,8 @@ pub fn reconstruct(
             .collect();
         let mut sorted = at_vertex.clone();
         sorted.sort_by(f64::total_cmp);
-        let cut = sorted[((options.density_trim * sorted.len() as f64) as usize).min(sorted.len() - 1)];
+        let cut =
+            sorted[((options.density_trim * sorted.len() as f64) as usize).min(sorted.len() - 1)];
         let keep: Vec<bool> = at_vertex.iter().map(|&d| d >= cut).collect();
         trimmed_vertices = keep.iter().filter(|k| !**k).count();
         surface = remove_vertices(&surface, &keep);
@@ -849,8 +855,7 @@ pub struct Poisson {
 impl Op for Poisson {
     type Params = PoissonParams;
     const ID: &'static str = "mesh.poisson";
-    const SUMMARY: &'static str =
-        "Reconstructs a watertight surface from oriented points by screened Poisson reconstruction.";
+    const SUMMARY: &'static str = "Reconstructs a watertight surface from oriented points by screened Poisson reconstruction.";
     const DOC: &'static str = r#"
 Fits an implicit function χ whose gradient matches the points' normals and whose value at the
 points is constant, and returns its level set through the points: screened Poisson surface
@@ -980,10 +985,19 @@ mod tests {
 
     /// `n` points on a sphere with outward normals, positions displaced along the normal by
     /// Gaussian noise of standard deviation `noise`.
-    fn noisy_sphere(n: usize, c: [f64; 3], r: f64, noise: f64, seed: u64) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    fn noisy_sphere(
+        n: usize,
+        c: [f64; 3],
+        r: f64,
+        noise: f64,
+        seed: u64,
+    ) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
         let on = crate::mesh::pointcloud::tests::sphere(n, c, r, seed);
         let mut rng = SplitMix64::new(seed + 1);
-        let normals: Vec<[f64; 3]> = on.iter().map(|p| [0, 1, 2].map(|a| (p[a] - c[a]) / r)).collect();
+        let normals: Vec<[f64; 3]> = on
+            .iter()
+            .map(|p| [0, 1, 2].map(|a| (p[a] - c[a]) / r))
+            .collect();
         let points = on
             .iter()
             .zip(&normals)
@@ -1013,7 +1027,15 @@ mod tests {
             ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt() - r
         };
         let [mean_a, max_a, mean_b, max_b] = chamfer(s, |p| dist(p).abs(), &truth, 100_000);
-        eprintln!("sphere: h {h} chamfer {mean_a} {max_a} {mean_b} {max_b}, {report:?}", report = (report.iterations, report.residual, report.iso_value, report.active_nodes));
+        eprintln!(
+            "sphere: h {h} chamfer {mean_a} {max_a} {mean_b} {max_b}, {report:?}",
+            report = (
+                report.iterations,
+                report.residual,
+                report.iso_value,
+                report.active_nodes
+            )
+        );
         assert!(mean_a + mean_b < 0.2 * h, "{mean_a} {mean_b} (h = {h})");
         assert!(max_a < h && max_b < h, "{max_a} {max_b}");
     }
@@ -1025,7 +1047,10 @@ mod tests {
         let mut points = Vec::new();
         let mut normals = Vec::new();
         while points.len() < 30_000 {
-            let (u, v) = (rng.uniform() * std::f64::consts::TAU, rng.uniform() * std::f64::consts::TAU);
+            let (u, v) = (
+                rng.uniform() * std::f64::consts::TAU,
+                rng.uniform() * std::f64::consts::TAU,
+            );
             // Area-uniform: accept with probability ∝ the local radius.
             if rng.uniform() * (big + small) > big + small * v.cos() {
                 continue;
@@ -1053,7 +1078,10 @@ mod tests {
         };
         let truth: Vec<[f64; 3]> = (0..5000)
             .map(|_| {
-                let (u, v) = (rng.uniform() * std::f64::consts::TAU, rng.uniform() * std::f64::consts::TAU);
+                let (u, v) = (
+                    rng.uniform() * std::f64::consts::TAU,
+                    rng.uniform() * std::f64::consts::TAU,
+                );
                 let rr = big + small * v.cos();
                 [rr * u.cos(), rr * u.sin(), small * v.sin()]
             })
@@ -1125,20 +1153,41 @@ mod tests {
         ));
         let mut bad = normals.clone();
         bad[7] = [0.0; 3];
-        assert!(matches!(reconstruct(&points, &bad, &o), Err(PoissonError::BadPoint { index: 7, .. })));
+        assert!(matches!(
+            reconstruct(&points, &bad, &o),
+            Err(PoissonError::BadPoint { index: 7, .. })
+        ));
         let mut nan = points.clone();
         nan[2][1] = f64::NAN;
-        assert!(matches!(reconstruct(&nan, &normals, &o), Err(PoissonError::BadPoint { index: 2, .. })));
+        assert!(matches!(
+            reconstruct(&nan, &normals, &o),
+            Err(PoissonError::BadPoint { index: 2, .. })
+        ));
         let same = vec![[1.0; 3]; 10];
-        assert_eq!(reconstruct(&same, &normals[..10], &o), Err(PoissonError::NoExtent));
+        assert_eq!(
+            reconstruct(&same, &normals[..10], &o),
+            Err(PoissonError::NoExtent)
+        );
         for bad in [
             PoissonOptions { depth: 10, ..o },
             PoissonOptions { depth: 0, ..o },
-            PoissonOptions { screening: f64::NAN, ..o },
+            PoissonOptions {
+                screening: f64::NAN,
+                ..o
+            },
             PoissonOptions { scale: 0.9, ..o },
-            PoissonOptions { density_trim: 1.0, ..o },
+            PoissonOptions {
+                density_trim: 1.0,
+                ..o
+            },
         ] {
-            assert!(matches!(reconstruct(&points, &normals, &bad), Err(PoissonError::Param(_))), "{bad:?}");
+            assert!(
+                matches!(
+                    reconstruct(&points, &normals, &bad),
+                    Err(PoissonError::Param(_))
+                ),
+                "{bad:?}"
+            );
         }
         let cloud = PointCloud {
             positions: points.iter().map(|p| p.map(|v| v as f32)).collect(),
