@@ -178,6 +178,12 @@ pub struct PoissonReport {
     pub trimmed_vertices: usize,
 }
 
+/// The 8 corner nodes of a sample's cell with their trilinear weights.
+type Corners = [(usize, f64); 8];
+
+/// Positions and normals.
+pub type OrientedPoints = (Vec<[f64; 3]>, Vec<[f64; 3]>);
+
 /// One grid level: `res` cells, `res + 1` nodes per axis.
 #[derive(Debug, Clone, Copy)]
 struct Level {
@@ -304,7 +310,7 @@ fn build_system(
 ) -> (System, Vec<f64>) {
     let n = level.nodes();
     let total = level.count();
-    let per_sample: Vec<([usize; 3], [(usize, f64); 8])> = samples
+    let per_sample: Vec<([usize; 3], Corners)> = samples
         .points
         .par_iter()
         .map(|u| level.corners(u))
@@ -573,7 +579,7 @@ fn prolong(coarse: Level, values: &[f64]) -> Vec<f64> {
     };
     let nf = fine.nodes();
     let taps = |f: usize| -> [(usize, f64); 2] {
-        if f % 2 == 0 {
+        if f.is_multiple_of(2) {
             [(f / 2, 1.0), (f / 2, 0.0)]
         } else {
             [(f / 2, 0.5), (f / 2 + 1, 0.5)]
@@ -926,7 +932,7 @@ Example:
 }
 
 /// The positions and normals of an oriented cloud.
-pub fn oriented_points(cloud: &PointCloud) -> Result<(Vec<[f64; 3]>, Vec<[f64; 3]>), OpError> {
+pub fn oriented_points(cloud: &PointCloud) -> Result<OrientedPoints, OpError> {
     let points = positions_f64(cloud).map_err(|e| e.at("cloud"))?;
     let normals = cloud
         .normals
