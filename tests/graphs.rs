@@ -17,6 +17,7 @@ const SNAPSHOTTED: &[&str] = &[
     "filters.ron",
     "homography.ron",
     "lines.ron",
+    "poisson.ron",
     "ransac_fundamental.ron",
     "ransac_homography.ron",
     "raycast.ron",
@@ -76,6 +77,11 @@ fn filters() {
 #[test]
 fn homography() {
     check_graph("homography.ron");
+}
+
+#[test]
+fn poisson() {
+    check_graph("poisson.ron");
 }
 
 #[test]

@@ -163,6 +163,9 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<mesh::icp::Icp>()?;
     registry.register::<mesh::icp::Transform>()?;
     registry.register::<mesh::fit::FitPrimitive>()?;
+    // Surface reconstruction: point-cloud input and screened Poisson.
+    registry.register::<io::read_point_cloud::ReadPointCloud>()?;
+    registry.register::<mesh::poisson::Poisson>()?;
     Ok(())
 }
 
