@@ -1,7 +1,9 @@
-//! The `mesh` family: point clouds (downsampling, outliers, normals), registration (ICP) and
-//! primitive fitting — Open3D's and PCL's territory.
+//! The `mesh` family: point clouds (downsampling, outliers, normals), registration (ICP),
+//! primitive fitting — Open3D's and PCL's territory — and triangle-mesh processing on a
+//! halfedge structure (normals, subdivision, simplification, metrics).
 
 pub mod fit;
+pub mod halfedge;
 pub mod icp;
 pub mod kdtree;
 pub mod pointcloud;
