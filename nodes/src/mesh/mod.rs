@@ -6,4 +6,8 @@ pub mod fit;
 pub mod halfedge;
 pub mod icp;
 pub mod kdtree;
+pub mod metrics;
+pub mod normals;
 pub mod pointcloud;
+pub mod simplify;
+pub mod subdivide;
