@@ -162,12 +162,13 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<mesh::icp::Icp>()?;
     registry.register::<mesh::icp::Transform>()?;
     registry.register::<mesh::fit::FitPrimitive>()?;
-    // Mesh processing: normals, subdivision, simplification, measurements.
+    // Mesh processing: normals, subdivision, simplification, measurements, smoothing.
     registry.register::<mesh::normals::Normals>()?;
     registry.register::<mesh::subdivide::Subdivide>()?;
     registry.register::<mesh::simplify::Simplify>()?;
     registry.register::<mesh::metrics::Measure>()?;
     registry.register::<mesh::metrics::Distance>()?;
+    registry.register::<mesh::smooth::Smooth>()?;
     Ok(())
 }
 

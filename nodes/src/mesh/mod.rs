@@ -10,4 +10,5 @@ pub mod metrics;
 pub mod normals;
 pub mod pointcloud;
 pub mod simplify;
+pub mod smooth;
 pub mod subdivide;
