@@ -304,7 +304,10 @@ impl HalfedgeMesh {
 
     /// Whether halfedge `h` exists.
     pub fn halfedge_alive(&self, h: u32) -> bool {
-        self.halfedge_alive.get(h as usize).copied().unwrap_or(false)
+        self.halfedge_alive
+            .get(h as usize)
+            .copied()
+            .unwrap_or(false)
     }
 
     /// Whether face `f` exists.
@@ -534,7 +537,9 @@ impl HalfedgeMesh {
                 return corrupt(format!("vertex {v} is non-manifold (two boundary fans)"));
             }
             if boundary_out[v as usize] == 1 && !self.is_boundary_halfedge(h) {
-                return corrupt(format!("boundary vertex {v} does not keep its boundary halfedge"));
+                return corrupt(format!(
+                    "boundary vertex {v} does not keep its boundary halfedge"
+                ));
             }
             ring.clear();
             ring.extend(self.outgoing(v).map(|h| self.dest(h)));
@@ -1313,7 +1318,10 @@ pub(crate) mod tests {
         p2.extend(p.iter().map(|v| [v[0] + 5.0, v[1], v[2]]));
         t.extend(t.clone().iter().map(|f| f.map(|i| i + 8)));
         let m = HalfedgeMesh::from_triangles(p2, &t).unwrap();
-        assert_eq!((m.components(), m.genus(), m.euler_characteristic()), (2, 0, 4));
+        assert_eq!(
+            (m.components(), m.genus(), m.euler_characteristic()),
+            (2, 0, 4)
+        );
     }
 
     #[test]
@@ -1342,7 +1350,14 @@ pub(crate) mod tests {
         // Two closed tetrahedra sharing a vertex: no boundary, still two fans.
         let mut p2 = vec![[0.0; 3]; 7];
         p2[0] = [0.0; 3];
-        let tet = |o: u32| [[0, o + 1, o + 2], [0, o + 2, o + 3], [0, o + 3, o + 1], [o + 1, o + 3, o + 2]];
+        let tet = |o: u32| {
+            [
+                [0, o + 1, o + 2],
+                [0, o + 2, o + 3],
+                [0, o + 3, o + 1],
+                [o + 1, o + 3, o + 2],
+            ]
+        };
         let mut t2 = tet(0).to_vec();
         t2.extend(tet(3));
         assert_eq!(
@@ -1390,7 +1405,12 @@ pub(crate) mod tests {
     #[test]
     fn flip_turns_the_diagonal_and_refuses_boundary_and_double_edges() {
         // A square 0-1-2-3 split along 0-2.
-        let p = vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
+        let p = vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [1.0, 1.0, 0.0],
+            [0.0, 1.0, 0.0],
+        ];
         let mut m = HalfedgeMesh::from_triangles(p, &[[0, 1, 2], [0, 2, 3]]).unwrap();
         let h = m.find_halfedge(0, 2).unwrap();
         m.flip_edge(h).unwrap();
@@ -1399,7 +1419,10 @@ pub(crate) mod tests {
         assert!(m.find_halfedge(1, 3).is_some() && m.find_halfedge(3, 1).is_some());
         let (_, mut t, _) = m.to_triangles().unwrap();
         for f in &mut t {
-            let r = f.iter().position(|&v| v == *f.iter().min().unwrap()).unwrap();
+            let r = f
+                .iter()
+                .position(|&v| v == *f.iter().min().unwrap())
+                .unwrap();
             f.rotate_left(r);
         }
         t.sort_unstable();
@@ -1470,7 +1493,11 @@ pub(crate) mod tests {
         let [a, b, c] = f.map(|i| p[i as usize]);
         let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
         let v = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
-        let n = [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]];
+        let n = [
+            u[1] * v[2] - u[2] * v[1],
+            u[2] * v[0] - u[0] * v[2],
+            u[0] * v[1] - u[1] * v[0],
+        ];
         0.5 * (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt()
     }
 
@@ -1521,7 +1548,10 @@ pub(crate) mod tests {
         .unwrap();
         let before = tet.clone();
         for h in 0..12 {
-            assert_eq!(tet.collapse_edge(h, [0.0; 3]), Err(LocalOpError::LinkCondition));
+            assert_eq!(
+                tet.collapse_edge(h, [0.0; 3]),
+                Err(LocalOpError::LinkCondition)
+            );
         }
         assert_eq!(tet, before);
         // Octahedron: collapsing an edge is fine (6 → 5 vertices, a square pyramid... of
@@ -1530,7 +1560,10 @@ pub(crate) mod tests {
         let h = oct.find_halfedge(0, 2).unwrap();
         oct.collapse_edge(h, [0.0; 3]).unwrap();
         oct.validate().unwrap();
-        assert_eq!((oct.num_vertices(), oct.num_faces(), oct.genus()), (5, 6, 0));
+        assert_eq!(
+            (oct.num_vertices(), oct.num_faces(), oct.genus()),
+            (5, 6, 0)
+        );
         assert!(oct.is_watertight());
     }
 

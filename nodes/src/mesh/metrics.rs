@@ -346,7 +346,9 @@ pub struct OneSided {
 
 /// Distances from `points` to the surface of `tree` (see the module documentation).
 pub fn one_sided(points: &[[f64; 3]], tree: &TriangleTree) -> OneSided {
-    let d2 = par_map(points.len(), |i| tree.closest(points[i]).map_or(0.0, |c| c.dist2));
+    let d2 = par_map(points.len(), |i| {
+        tree.closest(points[i]).map_or(0.0, |c| c.dist2)
+    });
     let (mut sum, mut sum2, mut max) = (0.0, 0.0, 0.0f64);
     for &d in &d2 {
         let s = d.sqrt();
@@ -378,13 +380,12 @@ pub fn mesh_distance(
                 used[v as usize] = true;
             }
         }
-        let mut p: Vec<[f64; 3]> = m
-            .0
-            .iter()
-            .zip(&used)
-            .filter(|(_, u)| **u)
-            .map(|(p, _)| *p)
-            .collect();
+        let mut p: Vec<[f64; 3]> =
+            m.0.iter()
+                .zip(&used)
+                .filter(|(_, u)| **u)
+                .map(|(p, _)| *p)
+                .collect();
         p.extend(sample_surface(m.0, m.1, samples, seed));
         p
     };
@@ -457,7 +458,11 @@ Example:
 "#;
 
     fn inputs() -> Vec<PortSpec> {
-        vec![PortSpec::new("mesh", PortType::Mesh, "A manifold triangle mesh.")]
+        vec![PortSpec::new(
+            "mesh",
+            PortType::Mesh,
+            "A manifold triangle mesh.",
+        )]
     }
 
     fn outputs() -> Vec<PortSpec> {
@@ -591,13 +596,13 @@ mod tests {
     fn closest_point_in_each_region_by_hand() {
         let (a, b, c) = ([0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 2.0, 0.0]);
         let cases = [
-            ([0.5, 0.5, 3.0], [0.5, 0.5, 0.0]),   // face
-            ([-1.0, -1.0, 1.0], a),               // vertex a
-            ([3.0, -0.5, 0.0], b),                // vertex b
-            ([-0.1, 5.0, 0.0], c),                // vertex c
-            ([1.0, -2.0, 0.0], [1.0, 0.0, 0.0]),  // edge ab
-            ([-3.0, 1.0, 0.0], [0.0, 1.0, 0.0]),  // edge ac
-            ([2.0, 2.0, 1.0], [1.0, 1.0, 0.0]),   // edge bc
+            ([0.5, 0.5, 3.0], [0.5, 0.5, 0.0]),  // face
+            ([-1.0, -1.0, 1.0], a),              // vertex a
+            ([3.0, -0.5, 0.0], b),               // vertex b
+            ([-0.1, 5.0, 0.0], c),               // vertex c
+            ([1.0, -2.0, 0.0], [1.0, 0.0, 0.0]), // edge ab
+            ([-3.0, 1.0, 0.0], [0.0, 1.0, 0.0]), // edge ac
+            ([2.0, 2.0, 1.0], [1.0, 1.0, 0.0]),  // edge bc
         ];
         for (p, want) in cases {
             let q = closest_point_on_triangle(p, a, b, c);
@@ -651,7 +656,10 @@ mod tests {
         let r = measure(&m).unwrap();
         assert!((r.area - 24.0).abs() < 1e-12);
         assert!((r.volume.unwrap() - 8.0).abs() < 1e-12);
-        assert_eq!((r.euler, r.genus, r.components, r.boundary_loops), (2, 0, 1, 0));
+        assert_eq!(
+            (r.euler, r.genus, r.components, r.boundary_loops),
+            (2, 0, 1, 0)
+        );
         // Far from the origin the volume keeps its precision; reversed triangles negate it.
         let far: Vec<[f64; 3]> = p.iter().map(|v| [v[0] + 1e7, v[1] - 3e6, v[2]]).collect();
         let rev: Vec<[u32; 3]> = t.iter().map(|f| [f[0], f[2], f[1]]).collect();

@@ -266,6 +266,8 @@ mod tests {
         }
         // Two faces at a right angle with π/2 each: the bisector.
         let s = 0.5f64.sqrt();
-        assert!(a[0][0].abs() < 1e-12 && (a[0][1] - s).abs() < 1e-12 && (a[0][2] - s).abs() < 1e-12);
+        assert!(
+            a[0][0].abs() < 1e-12 && (a[0][1] - s).abs() < 1e-12 && (a[0][2] - s).abs() < 1e-12
+        );
     }
 }

@@ -37,9 +37,9 @@ use std::sync::Arc;
 
 use nalgebra::{Matrix3, Vector3};
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::types::PortType;
-use ocellus_engine::value::{Mesh, Metrics, Value};
 use ocellus_engine::params;
+use ocellus_engine::types::PortType;
+use ocellus_engine::value::{Metrics, Value};
 
 use super::halfedge::{HalfedgeMesh, MeshError, NONE, halfedge_of, mesh_input, mesh_of};
 use super::normals::{NormalWeighting, cross, dot, norm, sub, vertex_normals};
@@ -100,7 +100,8 @@ impl Quadric {
         let [q00, q01, q02, q03, q11, q12, q13, q22, q23, _] = self.0;
         let a = Matrix3::new(q00, q01, q02, q01, q11, q12, q02, q12, q22);
         let scale = a.norm();
-        if !(scale > 0.0 && scale.is_finite()) || a.determinant().abs() < MIN_CONDITION * scale.powi(3)
+        if !(scale > 0.0 && scale.is_finite())
+            || a.determinant().abs() < MIN_CONDITION * scale.powi(3)
         {
             return None;
         }
@@ -291,13 +292,15 @@ impl Simplifier {
     fn candidate(&self, e: u32) -> Option<Candidate> {
         let m = &self.mesh;
         let (a, b) = (m.origin(e), m.dest(e));
-        if self.options.preserve_boundary && (m.is_boundary_vertex(a) || m.is_boundary_vertex(b))
-        {
+        if self.options.preserve_boundary && (m.is_boundary_vertex(a) || m.is_boundary_vertex(b)) {
             return None;
         }
         let mut q = self.quadrics[a as usize];
         q.add(&self.quadrics[b as usize]);
-        let (pa, pb) = (sub(m.position(a), self.center), sub(m.position(b), self.center));
+        let (pa, pb) = (
+            sub(m.position(a), self.center),
+            sub(m.position(b), self.center),
+        );
         let mid = [0, 1, 2].map(|k| 0.5 * (pa[k] + pb[k]));
         let length = norm(sub(pa, pb));
         let position = match q.minimizer() {
@@ -340,7 +343,7 @@ impl Simplifier {
         true
     }
 
-    /// Whether the target or the error cap says stop.
+    /// Whether the target is reached.
     fn done(&self) -> bool {
         self.mesh.num_faces() <= self.options.target_triangles
     }

@@ -35,7 +35,7 @@ use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Mesh, Metrics, Value};
 use ocellus_engine::{param_enum, params};
 
-use super::halfedge::{HalfedgeMesh, MeshError, NONE, halfedge_of, mesh_input};
+use super::halfedge::{HalfedgeMesh, MeshError, NONE, mesh_input, mesh_positions};
 use super::normals::{NormalWeighting, vertex_normals};
 use super::pointcloud::par_map;
 
@@ -97,7 +97,11 @@ pub fn loop_points(mesh: &HalfedgeMesh, data: &[[f64; 3]]) -> Vec<[f64; 3]> {
             p
         } else if mesh.is_boundary_vertex(v) {
             let (a, b) = boundary_neighbors(mesh, v);
-            lerp3(&[(0.75, p), (0.125, data[a as usize]), (0.125, data[b as usize])])
+            lerp3(&[
+                (0.75, p),
+                (0.125, data[a as usize]),
+                (0.125, data[b as usize]),
+            ])
         } else {
             let mut sum = [0.0; 3];
             let mut n = 0;
@@ -190,13 +194,20 @@ pub fn catmull_clark_points(mesh: &HalfedgeMesh, data: &[[f64; 3]]) -> Vec<[f64;
             p
         } else if mesh.is_boundary_vertex(v) {
             let (a, b) = boundary_neighbors(mesh, v);
-            lerp3(&[(0.75, p), (0.125, data[a as usize]), (0.125, data[b as usize])])
+            lerp3(&[
+                (0.75, p),
+                (0.125, data[a as usize]),
+                (0.125, data[b as usize]),
+            ])
         } else {
             let (mut q, mut r) = ([0.0; 3], [0.0; 3]);
             let mut n = 0;
             for h in mesh.outgoing(v) {
                 add(&mut q, face_points[mesh.face(h) as usize]);
-                add(&mut r, lerp3(&[(0.5, p), (0.5, data[mesh.dest(h) as usize])]));
+                add(
+                    &mut r,
+                    lerp3(&[(0.5, p), (0.5, data[mesh.dest(h) as usize])]),
+                );
                 n += 1;
             }
             let n = n as f64;
@@ -286,6 +297,9 @@ param_enum! {
 
 /// Triangles after `levels` steps of `method` on `triangles` triangles.
 pub fn subdivided_triangles(method: SubdivisionMethod, triangles: u64, levels: u32) -> u64 {
+    if levels == 0 {
+        return triangles;
+    }
     let grow = 4u64.saturating_pow(levels.saturating_sub(1));
     match method {
         SubdivisionMethod::Loop => triangles.saturating_mul(4).saturating_mul(grow),
@@ -420,7 +434,10 @@ Example:
 
     fn new(p: SubdivideParams) -> Result<Self, String> {
         if p.levels > MAX_LEVELS {
-            return Err(format!("`levels` must be at most {MAX_LEVELS}, got {}", p.levels));
+            return Err(format!(
+                "`levels` must be at most {MAX_LEVELS}, got {}",
+                p.levels
+            ));
         }
         if p.max_triangles == 0 {
             return Err("`max_triangles` must be at least 1".into());
@@ -443,7 +460,10 @@ impl Operator for Subdivide {
             ))
             .at("mesh"));
         }
-        let half = halfedge_of(mesh).map_err(|e| e.at("mesh"))?;
+        let positions = mesh_positions(mesh).map_err(|e| e.at("mesh"))?;
+        if mesh.triangles.is_empty() {
+            return Err(MeshError::Empty.at("mesh"));
+        }
         let to64 = |v: &Vec<[f32; 3]>| v.iter().map(|c| c.map(f64::from)).collect::<Vec<_>>();
         let mut attributes = Vec::new();
         if let Some(c) = &mesh.colors {
@@ -456,17 +476,15 @@ impl Operator for Subdivide {
                     .collect(),
             );
         }
-        let s = subdivide(
-            half.positions().to_vec(),
-            &mesh.triangles,
-            attributes,
-            p.method,
-            p.levels,
-        )
-        .map_err(|e| e.at("mesh"))?;
+        let s = subdivide(positions, &mesh.triangles, attributes, p.method, p.levels)
+            .map_err(|e| e.at("mesh"))?;
         let to32 = |v: &[[f64; 3]]| v.iter().map(|c| c.map(|x| x as f32)).collect::<Vec<_>>();
         let mut attrs = s.attributes.iter();
-        let colors = mesh.colors.as_ref().and_then(|_| attrs.next()).map(|c| to32(c));
+        let colors = mesh
+            .colors
+            .as_ref()
+            .and_then(|_| attrs.next())
+            .map(|c| to32(c));
         let uvs = mesh.uvs.as_ref().and_then(|_| attrs.next()).map(|c| {
             c.iter()
                 .map(|t| [t[0] as f32, t[1] as f32])
@@ -535,10 +553,11 @@ mod tests {
         let oct = octahedron();
         let p = loop_points(&oct, oct.positions());
         assert_eq!(p.len(), 6 + 12);
-        // Vertex (1,0,0), n = 4: β = (5/8 − 3/8·3/8)/4 = 31/256; (1 − 4β)·1 + β·(−1) = 1 − 5β.
+        // Vertex (1,0,0), n = 4: β = (5/8 − 3/8·3/8)/4 = 31/256; its neighbours (0,±1,0) and
+        // (0,0,±1) sum to 0, so it moves to (1 − 4β, 0, 0).
         let beta = loop_beta(4);
         assert!((beta - 31.0 / 256.0).abs() < 1e-15);
-        assert!(close(p[0], [1.0 - 5.0 * beta, 0.0, 0.0], 1e-15));
+        assert!(close(p[0], [1.0 - 4.0 * beta, 0.0, 0.0], 1e-15));
         // Edge (0, 2) = (1,0,0)–(0,1,0), opposite corners (0,0,±1): 3/8 (1, 1, 0).
         let (id, _) = edge_index(&oct);
         let e = id[oct.find_halfedge(0, 2).unwrap() as usize] as usize;
@@ -549,7 +568,10 @@ mod tests {
     fn loop_keeps_topology_and_its_limit_surface() {
         for mut mesh in [icosphere(0, 1, 0.5), {
             let (p, t) = grid(3, 2);
-            let p = p.iter().map(|v| [v[0], v[1], 0.1 * v[0] * v[1] - 0.2 * v[0] * v[0]]).collect();
+            let p = p
+                .iter()
+                .map(|v| [v[0], v[1], 0.1 * v[0] * v[1] - 0.2 * v[0] * v[0]])
+                .collect();
             HalfedgeMesh::from_triangles(p, &t).unwrap()
         }] {
             let (chi, loops) = (mesh.euler_characteristic(), mesh.boundary_loops().len());
@@ -616,7 +638,10 @@ mod tests {
                 .fold(0.0, f64::max);
             gaps.push(gap);
             let p = catmull_clark_points(&mesh, mesh.positions());
-            faces = catmull_clark_quads(&mesh).iter().map(|q| q.to_vec()).collect();
+            faces = catmull_clark_quads(&mesh)
+                .iter()
+                .map(|q| q.to_vec())
+                .collect();
             let next = HalfedgeMesh::from_polygons(p, &faces).unwrap();
             next.validate().unwrap();
             assert_eq!(next.num_vertices(), v + e + f);
@@ -654,20 +679,32 @@ mod tests {
         // the boundary too (a curved open grid).
         let (p, t) = grid(3, 2);
         let p: Vec<[f64; 3]> = p.iter().map(|v| [v[0], v[1], 0.3 * v[0] * v[1]]).collect();
-        let s = subdivide(p.clone(), &t, vec![p.clone()], SubdivisionMethod::CatmullClark, 1)
-            .unwrap();
+        let s = subdivide(
+            p.clone(),
+            &t,
+            vec![p.clone()],
+            SubdivisionMethod::CatmullClark,
+            1,
+        )
+        .unwrap();
         assert_eq!(s.triangles.len(), 6 * t.len());
         // The attribute (a copy of the positions) follows the positions exactly.
         assert_eq!(s.attributes[0], s.positions);
         let m0 = HalfedgeMesh::from_triangles(p, &t).unwrap();
         let p1 = catmull_clark_points(&m0, m0.positions());
-        let q1: Vec<Vec<u32>> = catmull_clark_quads(&m0).iter().map(|q| q.to_vec()).collect();
+        let q1: Vec<Vec<u32>> = catmull_clark_quads(&m0)
+            .iter()
+            .map(|q| q.to_vec())
+            .collect();
         let m1 = HalfedgeMesh::from_polygons(p1, &q1).unwrap();
         m1.validate().unwrap();
         assert_eq!(m1.boundary_loops().len(), 1);
         let l1 = catmull_clark_limit(&m1).unwrap();
         let p2 = catmull_clark_points(&m1, m1.positions());
-        let q2: Vec<Vec<u32>> = catmull_clark_quads(&m1).iter().map(|q| q.to_vec()).collect();
+        let q2: Vec<Vec<u32>> = catmull_clark_quads(&m1)
+            .iter()
+            .map(|q| q.to_vec())
+            .collect();
         let m2 = HalfedgeMesh::from_polygons(p2, &q2).unwrap();
         let l2 = catmull_clark_limit(&m2).unwrap();
         for i in 0..m1.vertex_capacity() {
@@ -679,7 +716,10 @@ mod tests {
     #[test]
     fn subdivide_counts_caps_and_rejects_non_manifold_input() {
         assert_eq!(subdivided_triangles(SubdivisionMethod::Loop, 10, 3), 640);
-        assert_eq!(subdivided_triangles(SubdivisionMethod::CatmullClark, 10, 3), 960);
+        assert_eq!(
+            subdivided_triangles(SubdivisionMethod::CatmullClark, 10, 3),
+            960
+        );
         assert_eq!(subdivided_triangles(SubdivisionMethod::Loop, 10, 0), 10);
         assert_eq!(
             subdivided_triangles(SubdivisionMethod::Loop, u64::MAX / 2, 8),
