@@ -166,6 +166,13 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     // Surface reconstruction: point-cloud input and screened Poisson.
     registry.register::<io::read_point_cloud::ReadPointCloud>()?;
     registry.register::<mesh::poisson::Poisson>()?;
+    // Mesh processing: normals, subdivision, simplification, measurements, smoothing.
+    registry.register::<mesh::normals::Normals>()?;
+    registry.register::<mesh::subdivide::Subdivide>()?;
+    registry.register::<mesh::simplify::Simplify>()?;
+    registry.register::<mesh::metrics::Measure>()?;
+    registry.register::<mesh::metrics::Distance>()?;
+    registry.register::<mesh::smooth::Smooth>()?;
     Ok(())
 }
 
