@@ -216,6 +216,15 @@ param_enum! {
     }
 }
 
+/// The samples of a one-channel image as f32 (u8 and u16 widened exactly).
+pub fn samples_f32(image: &Image) -> Vec<f32> {
+    match image.data() {
+        PixelData::U8(v) => v.iter().map(|&x| f32::from(x)).collect(),
+        PixelData::U16(v) => v.iter().map(|&x| f32::from(x)).collect(),
+        PixelData::F32(v) => v.clone(),
+    }
+}
+
 /// Depth `Z = f·B / (scale·d)` of every disparity sample (`f` in pixels, `B` in the unit
 /// wanted for Z); `d ≤ 0` or non-finite → `invalid`.
 pub fn disparity_to_depth(
@@ -628,11 +637,7 @@ impl Operator for DisparityToDepth {
             InvalidDepth::Nan => f32::NAN,
             InvalidDepth::Zero => 0.0,
         };
-        let samples: Vec<f32> = match image.data() {
-            PixelData::U8(v) => v.iter().map(|&x| f32::from(x)).collect(),
-            PixelData::U16(v) => v.iter().map(|&x| f32::from(x)).collect(),
-            PixelData::F32(v) => v.clone(),
-        };
+        let samples = samples_f32(image);
         let depth = disparity_to_depth(&samples, self.scale, fb, invalid);
         let out = Image::from_f32(image.width(), image.height(), Channels::Gray, depth)
             .map_err(|e| OpError::failed(e.to_string()))?;

@@ -17,6 +17,7 @@ use rayon::prelude::*;
 
 use crate::filter::convert::convert_type;
 use crate::geometry::camera::Lens;
+use crate::geometry::rectify::samples_f32;
 
 param_enum! {
     /// What a depth sample measures.
@@ -250,10 +251,15 @@ pub fn depth_to_points(
     })
 }
 
+/// Whether a scaled sample is a depth: finite, > 0 and inside `[min_depth, max_depth]`.
+fn valid_sample(s: f64, o: &DepthOptions) -> bool {
+    s.is_finite() && s > 0.0 && s >= o.min_depth && s <= o.max_depth
+}
+
 /// The camera-frame point of pixel `pixel` with scaled sample `s`, NaN when invalid.
 fn back_project(lens: &Lens, pixel: [f64; 2], s: f64, o: &DepthOptions) -> [f64; 3] {
     let nan = [f64::NAN; 3];
-    if !(s.is_finite() && s > 0.0 && s >= o.min_depth && s <= o.max_depth) {
+    if !valid_sample(s, o) {
         return nan;
     }
     let Some([x, y]) = lens.undistort(lens.from_pixel(pixel)) else {
@@ -505,11 +511,7 @@ impl Operator for DepthToPoints {
             ));
         }
         let (w, h) = (image.width(), image.height());
-        let samples: Vec<f32> = match image.data() {
-            PixelData::U8(v) => v.iter().map(|&x| f32::from(x)).collect(),
-            PixelData::U16(v) => v.iter().map(|&x| f32::from(x)).collect(),
-            PixelData::F32(v) => v.clone(),
-        };
+        let samples = samples_f32(image);
         let color_u8 = match inputs.get("color") {
             Some(Value::Image(c)) => {
                 if (c.width(), c.height()) != (w, h) {
@@ -559,12 +561,14 @@ impl Operator for DepthToPoints {
             &options,
         )
         .map_err(|e| OpError::input("camera", e.to_string()))?;
-        let valid: Vec<f64> = samples
-            .iter()
+        // The samples that were back-projected (every `stride`-th pixel) and are depths.
+        let stride = options.stride;
+        let valid: Vec<f64> = (0..h)
+            .step_by(stride)
+            .flat_map(|y| (0..w).step_by(stride).map(move |x| y * w + x))
+            .filter_map(|i| samples.get(i))
             .map(|&s| f64::from(s) * p.depth_scale)
-            .filter(|s| {
-                s.is_finite() && *s > 0.0 && *s >= options.min_depth && *s <= options.max_depth
-            })
+            .filter(|&s| valid_sample(s, &options))
             .collect();
         let mut m = Metrics::new();
         let n_valid = out.cloud.positions.len();
