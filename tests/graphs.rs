@@ -17,6 +17,7 @@ const SNAPSHOTTED: &[&str] = &[
     "filters.ron",
     "homography.ron",
     "lines.ron",
+    "mesh.ron",
     "poisson.ron",
     "ransac_fundamental.ron",
     "ransac_homography.ron",
@@ -77,6 +78,11 @@ fn filters() {
 #[test]
 fn homography() {
     check_graph("homography.ron");
+}
+
+#[test]
+fn mesh() {
+    check_graph("mesh.ron");
 }
 
 #[test]

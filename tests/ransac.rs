@@ -11,7 +11,7 @@ mod common;
 
 use std::fmt::Write as _;
 
-use common::root;
+use common::{Rng, root};
 use ocellus_engine::value::Value;
 
 /// The homography of `graphs/data/make_feature_pair.ron` (left → right pixels).
@@ -26,27 +26,6 @@ const H: [[f64; 3]; 3] = [
 const K: [f64; 3] = [500.0, 320.0, 240.0]; // f, cx, cy
 const T: [f64; 3] = [1.0, 0.1, 0.2];
 const ANGLES: [f64; 3] = [0.05, -0.2, 0.03]; // rotations about x, y, z (applied z·y·x)
-
-/// SplitMix64 with a uniform and a Box–Muller normal.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    fn uniform(&mut self) -> f64 {
-        (self.next() >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn normal(&mut self) -> f64 {
-        let u1 = 1.0 - self.uniform();
-        let u2 = self.uniform();
-        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-    }
-}
 
 fn apply_h(p: [f64; 2]) -> [f64; 2] {
     let w = H[2][0] * p[0] + H[2][1] * p[1] + H[2][2];

@@ -125,6 +125,14 @@ pub enum MeshError {
         /// Its corners.
         len: usize,
     },
+    /// A face is not a quad where quads are needed (Catmull–Clark limit positions).
+    #[error("face {face} has {len} corners, but a quad mesh is needed (subdivide once first)")]
+    NotQuad {
+        /// The face.
+        face: usize,
+        /// Its corners.
+        len: usize,
+    },
     /// [`HalfedgeMesh::validate`] found a broken invariant.
     #[error("invalid halfedge structure: {0}")]
     Corrupt(String),

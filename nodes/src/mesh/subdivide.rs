@@ -256,11 +256,15 @@ pub fn catmull_clark_quads(mesh: &HalfedgeMesh) -> Vec<[u32; 4]> {
 /// that is not a quad.
 pub fn catmull_clark_limit(mesh: &HalfedgeMesh) -> Result<Vec<[f64; 3]>, MeshError> {
     for f in 0..mesh.face_capacity() as u32 {
+        if !mesh.face_alive(f) {
+            continue;
+        }
         let len = mesh.face_cycle(f).count();
         if len != 4 {
-            return Err(MeshError::Corrupt(format!(
-                "Catmull–Clark limit positions need quads; face {f} has {len} corners"
-            )));
+            return Err(MeshError::NotQuad {
+                face: f as usize,
+                len,
+            });
         }
     }
     Ok(par_map(mesh.vertex_capacity(), |v| {
@@ -710,7 +714,10 @@ mod tests {
         for i in 0..m1.vertex_capacity() {
             assert!(close(l1[i], l2[i], 1e-12), "{i}");
         }
-        assert!(catmull_clark_limit(&m0).is_err());
+        assert!(matches!(
+            catmull_clark_limit(&m0),
+            Err(MeshError::NotQuad { len: 3, .. })
+        ));
     }
 
     #[test]

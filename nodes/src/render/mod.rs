@@ -4,6 +4,7 @@
 
 pub mod bsdf;
 pub mod bvh;
+pub mod mesh_scene;
 pub mod primitives;
 pub mod raster;
 pub mod raycast;
