@@ -11,8 +11,9 @@
 //! - the edge `ab` costs `Q(v̄)` with `Q = Q_a + Q_b` and `v̄` the minimizer of `Q` (solving the
 //!   3×3 system) when that system is well conditioned and `v̄` is near the edge; otherwise the
 //!   best of `a`, `b` and the midpoint.
-//! - edges are collapsed cheapest first (a binary heap, ties broken by the lower halfedge index,
-//!   stale entries skipped by a per-edge stamp); a collapse is refused when the link condition
+//! - edges are collapsed cheapest first (an indexed 4-ary heap holding one entry per edge, ties
+//!   broken by the lower halfedge index; an edge's entry is updated in place when its cost
+//!   changes and removed when the edge dies); a collapse is refused when the link condition
 //!   fails ([`HalfedgeMesh::can_collapse`]) or a surviving triangle around the edge would turn
 //!   by more than 90° or become degenerate; the merged vertex keeps `Q_a + Q_b` and the costs of
 //!   its edges are recomputed.
@@ -31,8 +32,7 @@
 //! collapses are sequential and the initial costs computed per edge, so the result does not
 //! depend on the thread count.
 
-use std::cmp::{Ordering, Reverse};
-use std::collections::BinaryHeap;
+use std::cmp::Ordering;
 use std::sync::Arc;
 
 use nalgebra::{Matrix3, Vector3};
@@ -153,34 +153,148 @@ pub struct Simplified {
     pub report: SimplifyReport,
 }
 
+/// The cost of collapsing an edge and where the merged vertex goes.
 #[derive(Debug, Clone, Copy)]
 struct Candidate {
     cost: f64,
-    edge: u32,
-    stamp: u32,
     position: [f64; 3],
 }
 
-impl PartialEq for Candidate {
-    fn eq(&self, other: &Self) -> bool {
-        self.cmp(other) == Ordering::Equal
+/// A min-heap of edges by `(cost, edge)` with one entry per edge, updated and removed in place
+/// (a 4-ary heap with a per-edge slot map). The order is total, so the sequence of minima does
+/// not depend on the heap's internal layout.
+#[derive(Debug, Clone, Default)]
+pub struct EdgeHeap {
+    entries: Vec<(f64, u32)>,
+    slot: Vec<u32>,
+}
+
+const ARITY: usize = 4;
+
+fn precedes(a: (f64, u32), b: (f64, u32)) -> bool {
+    match a.0.total_cmp(&b.0) {
+        Ordering::Less => true,
+        Ordering::Greater => false,
+        Ordering::Equal => a.1 < b.1,
     }
 }
 
-impl Eq for Candidate {}
-
-impl PartialOrd for Candidate {
-    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
-        Some(self.cmp(other))
+impl EdgeHeap {
+    /// A heap over edge ids `0..capacity` holding `entries` (each edge at most once).
+    pub fn new(capacity: usize, entries: Vec<(f64, u32)>) -> EdgeHeap {
+        let mut slot = vec![NONE; capacity];
+        for (i, e) in entries.iter().enumerate() {
+            slot[e.1 as usize] = i as u32;
+        }
+        let mut heap = EdgeHeap { entries, slot };
+        for i in (0..heap.entries.len().div_ceil(ARITY)).rev() {
+            heap.sift_down(i);
+        }
+        heap
     }
-}
 
-impl Ord for Candidate {
-    fn cmp(&self, other: &Self) -> Ordering {
-        self.cost
-            .total_cmp(&other.cost)
-            .then(self.edge.cmp(&other.edge))
-            .then(self.stamp.cmp(&other.stamp))
+    /// Entries in the heap.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// Whether the heap is empty.
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    fn place(&mut self, i: usize, entry: (f64, u32)) {
+        self.entries[i] = entry;
+        self.slot[entry.1 as usize] = i as u32;
+    }
+
+    fn sift_up(&mut self, mut i: usize) -> usize {
+        let entry = self.entries[i];
+        while i > 0 {
+            let parent = (i - 1) / ARITY;
+            if !precedes(entry, self.entries[parent]) {
+                break;
+            }
+            self.place(i, self.entries[parent]);
+            i = parent;
+        }
+        self.place(i, entry);
+        i
+    }
+
+    fn sift_down(&mut self, mut i: usize) {
+        let entry = self.entries[i];
+        let n = self.entries.len();
+        loop {
+            let first = ARITY * i + 1;
+            if first >= n {
+                break;
+            }
+            let mut best = first;
+            for c in first + 1..(first + ARITY).min(n) {
+                if precedes(self.entries[c], self.entries[best]) {
+                    best = c;
+                }
+            }
+            if !precedes(self.entries[best], entry) {
+                break;
+            }
+            self.place(i, self.entries[best]);
+            i = best;
+        }
+        self.place(i, entry);
+    }
+
+    /// Inserts `edge` with `cost`, or changes its cost.
+    pub fn set(&mut self, edge: u32, cost: f64) {
+        let s = self.slot[edge as usize];
+        if s == NONE {
+            self.entries.push((cost, edge));
+            let last = self.entries.len() - 1;
+            self.slot[edge as usize] = last as u32;
+            self.sift_up(last);
+        } else {
+            let s = s as usize;
+            let old = self.entries[s];
+            self.entries[s].0 = cost;
+            if precedes((cost, edge), old) {
+                self.sift_up(s);
+            } else {
+                self.sift_down(s);
+            }
+        }
+    }
+
+    /// Removes `edge` if present.
+    pub fn remove(&mut self, edge: u32) {
+        let s = self.slot[edge as usize];
+        if s == NONE {
+            return;
+        }
+        self.slot[edge as usize] = NONE;
+        let Some(last) = self.entries.pop() else {
+            return;
+        };
+        let s = s as usize;
+        if s < self.entries.len() {
+            self.place(s, last);
+            let at = self.sift_up(s);
+            self.sift_down(at);
+        }
+    }
+
+    /// Removes and returns the entry with the smallest `(cost, edge)`.
+    pub fn pop(&mut self) -> Option<(f64, u32)> {
+        let top = *self.entries.first()?;
+        self.remove(top.1);
+        Some(top)
+    }
+
+    /// Removes every entry.
+    pub fn clear(&mut self) {
+        for e in self.entries.drain(..) {
+            self.slot[e.1 as usize] = NONE;
+        }
     }
 }
 
@@ -190,8 +304,9 @@ impl Ord for Candidate {
 pub struct Simplifier {
     mesh: HalfedgeMesh,
     quadrics: Vec<Quadric>,
-    heap: BinaryHeap<Reverse<Candidate>>,
-    stamp: Vec<u32>,
+    heap: EdgeHeap,
+    /// Scratch: the edges around a collapse before it happens.
+    ring: Vec<u32>,
     parent: Vec<u32>,
     center: [f64; 3],
     options: SimplifyOptions,
@@ -249,8 +364,8 @@ impl Simplifier {
         }
         let mut s = Simplifier {
             parent: (0..mesh.vertex_capacity() as u32).collect(),
-            stamp: vec![0; mesh.halfedge_capacity()],
-            heap: BinaryHeap::new(),
+            heap: EdgeHeap::default(),
+            ring: Vec::new(),
             report: SimplifyReport {
                 input_triangles: mesh.num_faces(),
                 output_triangles: mesh.num_faces(),
@@ -264,8 +379,13 @@ impl Simplifier {
         let edges: Vec<u32> = (0..s.mesh.halfedge_capacity() as u32)
             .filter(|&h| s.mesh.halfedge_alive(h) && h < s.mesh.twin(h))
             .collect();
-        let candidates = par_map(edges.len(), |i| s.candidate(edges[i]));
-        s.heap = candidates.into_iter().flatten().map(Reverse).collect();
+        let candidates = par_map(edges.len(), |i| s.candidate(edges[i]).map(|c| c.cost));
+        let entries = candidates
+            .into_iter()
+            .zip(edges)
+            .filter_map(|(c, e)| c.map(|c| (c, e)))
+            .collect();
+        s.heap = EdgeHeap::new(s.mesh.halfedge_capacity(), entries);
         Ok(s)
     }
 
@@ -313,8 +433,6 @@ impl Simplifier {
         let cost = q.eval(position).max(0.0);
         Some(Candidate {
             cost,
-            edge: e,
-            stamp: self.stamp[e as usize],
             position: [0, 1, 2].map(|k| position[k] + self.center[k]),
         })
     }
@@ -354,16 +472,15 @@ impl Simplifier {
         if self.done() {
             return false;
         }
-        while let Some(Reverse(c)) = self.heap.pop() {
-            let e = c.edge;
-            if !self.mesh.halfedge_alive(e)
-                || self.mesh.twin(e) < e
-                || self.stamp[e as usize] != c.stamp
-            {
+        while let Some((cost, e)) = self.heap.pop() {
+            // Every entry is a live edge under its lower halfedge (entries are removed when
+            // that changes); its candidate is recomputed from the same quadrics and positions.
+            let Some(c) = self.candidate(e) else {
                 continue;
-            }
+            };
+            debug_assert_eq!(c.cost.to_bits(), cost.to_bits());
             if let Some(max) = self.options.max_error
-                && c.cost.sqrt() > max
+                && cost.sqrt() > max
             {
                 self.heap.clear();
                 return false;
@@ -383,23 +500,37 @@ impl Simplifier {
                 continue;
             }
             let (a, b) = (self.mesh.origin(h), self.mesh.dest(h));
+            let mut ring = std::mem::take(&mut self.ring);
+            ring.clear();
+            for v in [a, b] {
+                ring.extend(self.mesh.outgoing(v).map(|s| s.min(self.mesh.twin(s))));
+            }
             if self.mesh.collapse_edge(h, c.position).is_err() {
                 self.report.rejected_topology += 1;
+                self.ring = ring;
                 continue;
             }
             let qa = self.quadrics[a as usize];
             self.quadrics[b as usize].add(&qa);
             self.parent[a as usize] = b;
             self.report.collapses += 1;
-            self.report.max_collapse_error = self.report.max_collapse_error.max(c.cost.sqrt());
-            let ring: Vec<u32> = self.mesh.outgoing(b).collect();
-            for s in ring {
-                let e = s.min(self.mesh.twin(s));
-                self.stamp[e as usize] = self.stamp[e as usize].wrapping_add(1);
-                if let Some(c) = self.candidate(e) {
-                    self.heap.push(Reverse(c));
+            self.report.max_collapse_error = self.report.max_collapse_error.max(cost.sqrt());
+            // Edges that died or changed their lower halfedge leave the heap; every edge at b
+            // gets its new cost.
+            for &k in &ring {
+                if !self.mesh.halfedge_alive(k) || self.mesh.twin(k) < k {
+                    self.heap.remove(k);
                 }
             }
+            ring.clear();
+            ring.extend(self.mesh.outgoing(b).map(|s| s.min(self.mesh.twin(s))));
+            for &k in &ring {
+                match self.candidate(k) {
+                    Some(c) => self.heap.set(k, c.cost),
+                    None => self.heap.remove(k),
+                }
+            }
+            self.ring = ring;
             return true;
         }
         false
@@ -843,6 +974,47 @@ mod tests {
             simplify(quads, opts),
             Err(MeshError::NotTriangle { .. })
         ));
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+        #[test]
+        fn edge_heap_pops_in_cost_then_edge_order(
+            ops in proptest::collection::vec((0u8..4, 0u32..40, 0u8..6), 1..300),
+        ) {
+            // A model: the map edge → cost; every pop must return its smallest (cost, edge).
+            // Costs from a small set, so ties (broken by the edge) are common.
+            let mut heap = EdgeHeap::new(40, vec![(1.0, 3), (0.5, 7), (1.0, 2)]);
+            let mut model: std::collections::BTreeMap<u32, f64> =
+                [(3, 1.0), (7, 0.5), (2, 1.0)].into_iter().collect();
+            for (op, edge, c) in ops {
+                let cost = f64::from(c) * 0.25;
+                match op {
+                    0 | 1 => {
+                        heap.set(edge, cost);
+                        model.insert(edge, cost);
+                    }
+                    2 => {
+                        heap.remove(edge);
+                        model.remove(&edge);
+                    }
+                    _ => {
+                        let expected = model
+                            .iter()
+                            .map(|(&e, &c)| (c, e))
+                            .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                        let got = heap.pop();
+                        prop_assert_eq!(got, expected);
+                        if let Some((_, e)) = got {
+                            model.remove(&e);
+                        }
+                    }
+                }
+                prop_assert_eq!(heap.len(), model.len());
+            }
+            heap.clear();
+            prop_assert!(heap.is_empty() && heap.pop().is_none());
+        }
     }
 
     proptest! {
