@@ -94,10 +94,14 @@ def open3d_run(binary, depth, threads, repeat):
     return mesh, float(np.median(times))
 
 
+EXTRA_SETS = []
+
+
 def ocellus_run(binary, depth, threads, repeat):
     with tempfile.TemporaryDirectory() as out:
         prof = os.path.join(out, "profile.json")
-        subprocess.run([binary, "run", GRAPH, "--set", f"poisson.depth={depth}",
+        sets = [a for s in EXTRA_SETS for a in ("--set", s)]
+        subprocess.run([binary, "run", GRAPH, "--set", f"poisson.depth={depth}", *sets,
                         "--threads", str(threads), "--repeat", str(repeat), "--profile", prof,
                         "--emit", out], check=True, stdout=subprocess.DEVNULL)
         ms = json.load(open(prof))["nodes"]["poisson"]["median_ms"]
@@ -111,7 +115,11 @@ def main():
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--binary", default=os.path.join(ROOT, "target", "release", "ocellus"))
+    ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
+                    help="extra parameter for the Ocellus graph (repeatable)")
+    ap.add_argument("--only", choices=["Ocellus", "Open3D"], help="run one tool only")
     args = ap.parse_args()
+    EXTRA_SETS.extend(args.set)
     truth = truth_samples(100_000, np.random.default_rng(1))
     print(f"open3d {o3d.__version__}, {len(truth)} truth samples", file=sys.stderr)
     print("| depth | threads | tool | mesh→truth | truth→mesh | Chamfer | triangles | time (s) |")
@@ -119,6 +127,8 @@ def main():
     for depth in args.depths:
         for threads in args.threads:
             for name, run in (("Ocellus", ocellus_run), ("Open3D", open3d_run)):
+                if args.only and name != args.only:
+                    continue
                 mesh, seconds = run(args.binary, depth, threads, args.repeat)
                 a, b = score(mesh, truth)
                 print(f"| {depth} | {threads} | {name} | {a:.5f} | {b:.5f} | {a + b:.5f} | "

@@ -11,7 +11,11 @@
 //! ```
 //!
 //! - `V`: the normals splatted onto the grid nodes with trilinear weights (the first-order
-//!   B-spline of KBH06 §4), `V = Σₛ nₛ B(x − pₛ)`; the gradient term is the graph Laplacian of the
+//!   B-spline of KBH06 §4), `V = Σₛ nₛ B(x − pₛ)`, each at its sample's own depth (KBH06 §4.3's
+//!   adaptive splatting: the finest depth at which a kernel estimate of the sample density
+//!   reaches `samples_per_node` per cell, at most [`MAX_SPLAT_COARSENING`] levels coarser; a
+//!   coarser splat is the coarser level's tent, `2^k` cells wide, on this level's nodes), so
+//!   where points are sparse for the grid the field is smooth; the gradient term is the graph Laplacian of the
 //!   node grid (the natural, Neumann, boundary) against finite differences of `V` along the grid
 //!   edges.
 //! - the screening term: `χ(pₛ)` trilinear in the 8 corners of the sample's cell; `A / N` is the
@@ -62,6 +66,9 @@ pub const MAX_DEPTH: u32 = 9;
 pub const SAMPLES_PER_AREA_CELL: f64 = 4.0;
 /// Levels above the finest at which the trimming density is splatted.
 const DENSITY_LEVELS: u32 = 4;
+/// Most levels a sample's splat is coarsened below the solved level (a tent of 2^k cells;
+/// 2^k − 1 must not exceed [`BAND`], so the whole splat lies on active nodes).
+pub const MAX_SPLAT_COARSENING: u32 = 2;
 /// Relative residual at which the base solve stops.
 const BASE_TOLERANCE: f64 = 1e-6;
 /// Relative residual reduction at which a finer solve stops.
@@ -117,6 +124,10 @@ pub struct PoissonOptions {
     pub scale: f64,
     /// Quantile of vertex densities below which vertices are removed, `[0, 1)`.
     pub density_trim: f64,
+    /// Adaptive splatting: a sample's normal is splatted at the finest level whose cell around
+    /// it holds at least this many samples (at most [`MAX_SPLAT_COARSENING`] levels coarser
+    /// than the level being solved); 0 splats every sample at the solved level. `≥ 0`.
+    pub samples_per_node: f64,
 }
 
 impl Default for PoissonOptions {
@@ -126,6 +137,7 @@ impl Default for PoissonOptions {
             screening: 4.0,
             scale: 1.1,
             density_trim: 0.0,
+            samples_per_node: 0.5,
         }
     }
 }
@@ -149,6 +161,12 @@ impl PoissonOptions {
             return Err(PoissonError::Param(format!(
                 "`scale` must be in [1, 100], got {}",
                 self.scale
+            )));
+        }
+        if !(self.samples_per_node.is_finite() && (0.0..=1e6).contains(&self.samples_per_node)) {
+            return Err(PoissonError::Param(format!(
+                "`samples_per_node` must be in [0, 1e6], got {}",
+                self.samples_per_node
             )));
         }
         if !(self.density_trim.is_finite() && (0.0..1.0).contains(&self.density_trim)) {
@@ -298,6 +316,94 @@ impl System {
 struct Samples {
     points: Vec<[f64; 3]>,
     normals: Vec<[f64; 3]>,
+    /// Per sample, the finest depth at which its normal is splatted.
+    splat_depth: Vec<u32>,
+}
+
+/// Per sample, the finest depth `≤ depth` at which the sample density around it reaches
+/// `samples_per_node` samples per cell (PoissonRecon's adaptive splatting, KBH06 §4.3: where
+/// samples are sparse for the grid the normal field is splatted wider, so the fine levels do
+/// not follow the noise of isolated samples). The density at a level is a kernel estimate: every
+/// sample splatted onto the level's nodes with trilinear weights and read back at each sample
+/// through its 8 corners (`Σ_t B(p_s − p_t)`, in samples per cell), so it does not depend on
+/// where cell boundaries fall. Sums run in sample order: deterministic.
+fn splat_depths(points: &[[f64; 3]], depth: u32, samples_per_node: f64) -> Vec<u32> {
+    let mut out = vec![0; points.len()];
+    if samples_per_node <= 0.0 {
+        return vec![depth; points.len()];
+    }
+    let mut settled = vec![false; points.len()];
+    for d in (0..=depth).rev() {
+        let l = Level { res: 1 << d };
+        let corners: Vec<Corners> = points.par_iter().map(|u| l.corners(u).1).collect();
+        let mut splat: Vec<(usize, u32, f64)> = corners
+            .iter()
+            .enumerate()
+            .flat_map(|(s, c)| c.iter().map(move |&(g, w)| (g, s as u32, w)))
+            .collect();
+        splat.par_sort_unstable_by_key(|t| (t.0, t.1));
+        let mut nodes: Vec<usize> = Vec::new();
+        let mut weight: Vec<f64> = Vec::new();
+        for &(g, _, w) in &splat {
+            if nodes.last() == Some(&g) {
+                if let Some(last) = weight.last_mut() {
+                    *last += w;
+                }
+            } else {
+                nodes.push(g);
+                weight.push(w);
+            }
+        }
+        for (s, c) in corners.iter().enumerate() {
+            if settled[s] {
+                continue;
+            }
+            let density: f64 = c
+                .iter()
+                .map(|&(g, w)| nodes.binary_search(&g).map_or(0.0, |i| w * weight[i]))
+                .sum();
+            if density >= samples_per_node || d == 0 {
+                settled[s] = true;
+                out[s] = d;
+            }
+        }
+        if settled.iter().all(|&s| s) {
+            break;
+        }
+    }
+    out
+}
+
+/// The splat of sample `u` at `level` coarsened by `k` levels: a separable tent of half-width
+/// `2^k` cells (the linear B-spline of the coarser level), normalised to unit sum; `k = 0` is the
+/// trilinear splat on the cell's 8 corners.
+fn splat_nodes(level: Level, u: &[f64; 3], k: u32, out: &mut Vec<(usize, f64)>) {
+    out.clear();
+    if k == 0 {
+        out.extend(level.corners(u).1);
+        return;
+    }
+    let r = level.res as f64;
+    let w = f64::from(1u32 << k);
+    let axis = |a: usize| -> Vec<(usize, f64)> {
+        let p = (u[a] * r).clamp(0.0, r);
+        let lo = (p - w).ceil().max(0.0) as usize;
+        let hi = ((p + w).floor() as usize).min(level.res);
+        (lo..=hi)
+            .filter_map(|j| {
+                let t = 1.0 - (j as f64 - p).abs() / w;
+                (t > 0.0).then_some((j, t / w))
+            })
+            .collect()
+    };
+    let (ax, ay, az) = (axis(0), axis(1), axis(2));
+    for &(z, wz) in &az {
+        for &(y, wy) in &ay {
+            for &(x, wx) in &ax {
+                out.push((level.index(x, y, z), wx * wy * wz));
+            }
+        }
+    }
 }
 
 /// Builds the system of `level` over the nodes within `band` cells of a cell holding samples
@@ -389,20 +495,62 @@ fn build_system(
         .iter()
         .map(|(_, c)| c.map(|(g, w)| (index[g], w)))
         .collect();
-    // Splatted normals per active node.
-    let field: Vec<[f64; 3]> = (0..m)
-        .into_par_iter()
-        .map(|k| {
-            let mut v = [0.0; 3];
-            for &(s, w) in &entries[offsets[k]..offsets[k + 1]] {
-                let nrm = samples.normals[s as usize];
-                for a in 0..3 {
-                    v[a] += w * nrm[a];
+    // Splatted normals per active node: each sample's tent (trilinear at its splat depth, see
+    // `splat_depths`) gathered per node in sample order.
+    let depth = level.res.trailing_zeros();
+    let coarsening = |s: usize| {
+        depth
+            .saturating_sub(samples.splat_depth[s])
+            .min(MAX_SPLAT_COARSENING)
+    };
+    let adaptive = (0..samples.points.len()).any(|s| coarsening(s) > 0);
+    let field: Vec<[f64; 3]> = if adaptive {
+        let chunks: Vec<Vec<(usize, u32, f64)>> = samples
+            .points
+            .par_chunks(CHUNK)
+            .enumerate()
+            .map(|(c, pts)| {
+                let mut nodes = Vec::new();
+                let mut out = Vec::new();
+                for (i, u) in pts.iter().enumerate() {
+                    let s = c * CHUNK + i;
+                    splat_nodes(level, u, coarsening(s), &mut nodes);
+                    out.extend(
+                        nodes
+                            .iter()
+                            .filter(|(g, _)| index[*g] != INACTIVE)
+                            .map(|&(g, w)| (g, s as u32, w)),
+                    );
                 }
+                out
+            })
+            .collect();
+        let mut splats: Vec<(usize, u32, f64)> = chunks.into_iter().flatten().collect();
+        splats.par_sort_unstable_by_key(|t| (t.0, t.1));
+        let mut field = vec![[0.0; 3]; m];
+        for &(g, s, w) in &splats {
+            let nrm = samples.normals[s as usize];
+            let v = &mut field[index[g] as usize];
+            for a in 0..3 {
+                v[a] += w * nrm[a];
             }
-            v
-        })
-        .collect();
+        }
+        field
+    } else {
+        (0..m)
+            .into_par_iter()
+            .map(|k| {
+                let mut v = [0.0; 3];
+                for &(s, w) in &entries[offsets[k]..offsets[k + 1]] {
+                    let nrm = samples.normals[s as usize];
+                    for a in 0..3 {
+                        v[a] += w * nrm[a];
+                    }
+                }
+                v
+            })
+            .collect()
+    };
     // b = h²-free divergence: Σ_edges into the node of V_e minus those out of it, V_e the mean
     // of its end nodes' components along the edge; scaled by res² so that χ has the same scale
     // at every level.
@@ -672,7 +820,12 @@ pub fn reconstruct(
             .iter()
             .map(|p| std::array::from_fn(|a| (p[a] - origin[a]) / side))
             .collect(),
+        splat_depth: Vec::new(),
         normals: unit_normals,
+    };
+    let samples = Samples {
+        splat_depth: splat_depths(&samples.points, options.depth, options.samples_per_node),
+        ..samples
     };
     let area_per_sample = area_per_sample(&samples.points, options.depth);
     let depth = options.depth;
@@ -849,6 +1002,12 @@ params! {
         /// Removes the vertices whose sample density is below this quantile of all vertices'
         /// densities (0: keep everything, a closed surface). Default 0.
         density_trim: f64 = 0.0 => [min = 0.0, max = 1.0],
+        /// Adaptive splatting: each normal is splatted at the finest depth where the density
+        /// of points around it reaches this many per cell (up to 2 levels coarser), smoothing
+        /// the field where points are sparse for the grid (PoissonRecon's `--samplesPerNode`);
+        /// 0: always at the solved depth. Higher smooths noisy, sparse scans more at high
+        /// depth. Default 0.5.
+        samples_per_node: f64 = 0.5 => [min = 0.0, max = 1e6],
     }
 }
 
@@ -868,7 +1027,10 @@ points is constant, and returns its level set through the points: screened Poiss
 reconstruction.
 
 The points are scaled into their bounding cube enlarged by `scale`, split into 2^depth cells per
-axis. The normals are splatted onto the grid nodes with trilinear weights into a vector field V,
+axis. The normals are splatted onto the grid nodes with trilinear weights into a vector field V
+— each at the finest depth where the density of points around it reaches `samples_per_node`
+per cell (up to 2 levels coarser: adaptive splatting, so sparse points do not make the fine
+levels follow their noise),
 and χ minimises ∫|∇χ − V|² + α·(A/N)·Σ χ(p)² (A/N the surface area per point, estimated from
 occupied cells): a Laplacian against the divergence of V, plus the screening term at the
 points. The system is solved coarse to fine by Jacobi-preconditioned conjugate gradients: on the
@@ -925,6 +1087,7 @@ Example:
             screening: p.screening,
             scale: p.scale,
             density_trim: p.density_trim,
+            samples_per_node: p.samples_per_node,
         };
         options.check().map_err(|e| e.to_string())?;
         Ok(Poisson { options })
@@ -986,6 +1149,60 @@ impl Operator for Poisson {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn wide_splats_are_partitions_of_unity_with_linear_precision() {
+        // Every tent sums to 1 and reproduces the point (first moment), at every coarsening.
+        let level = Level { res: 64 };
+        let mut nodes = Vec::new();
+        for u in [[0.5, 0.5, 0.5], [0.2031, 0.7777, 0.4], [0.3, 0.30001, 0.61]] {
+            for k in 0..=MAX_SPLAT_COARSENING {
+                splat_nodes(level, &u, k, &mut nodes);
+                assert!(nodes.len() <= (2usize << k).pow(3));
+                let sum: f64 = nodes.iter().map(|n| n.1).sum();
+                assert!((sum - 1.0).abs() < 1e-12, "k {k}: {sum}");
+                let n = level.nodes();
+                for a in 0..3 {
+                    let moment: f64 = nodes
+                        .iter()
+                        .map(|&(g, w)| {
+                            let c = [g % n, (g / n) % n, g / (n * n)][a];
+                            w * c as f64 / level.res as f64
+                        })
+                        .sum();
+                    assert!((moment - u[a]).abs() < 1e-12, "k {k} axis {a}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn splat_depth_follows_the_local_sample_count() {
+        // 64 samples in one depth-6 cell and one isolated sample: the cluster splats at the
+        // finest depth where its cells hold ≥ 2 of them, the lone sample at depth 0 (only the
+        // root cell holds it with others).
+        let mut points: Vec<[f64; 3]> = (0..64)
+            .map(|i| {
+                let (x, y, z) = (i % 4, (i / 4) % 4, i / 16);
+                [
+                    0.5 + 0.003 * x as f64,
+                    0.5 + 0.003 * y as f64,
+                    0.5 + 0.003 * z as f64,
+                ]
+            })
+            .collect();
+        points.push([0.9, 0.1, 0.1]);
+        let d = splat_depths(&points, 8, 1.5);
+        // Alone, the sample's own weight is at most 1 < 1.5 at every level until the root
+        // cell's corners gather the cluster's weight too.
+        assert!(d[64] <= 1, "{}", d[64]);
+        // At depth 8 (cells of 1/256 ≈ 0.0039) neighbours 0.003 apart: about 2 samples per
+        // cell around each (1.5 reached at depth 8 or 7); at depth 6 the cluster is dense.
+        assert!(d[..64].iter().all(|&v| v >= 7), "{:?}", &d[..64]);
+        // A threshold no sample's own weight can miss keeps everything at depth; 0 disables.
+        assert!(splat_depths(&points, 8, 0.125).iter().all(|&v| v == 8));
+        assert!(splat_depths(&points, 8, 0.0).iter().all(|&v| v == 8));
+    }
     use crate::describe::brief::SplitMix64;
     use crate::mesh::marching_cubes::tests::{chamfer, closed_euler, volume};
 
@@ -1182,6 +1399,10 @@ mod tests {
                 ..o
             },
             PoissonOptions { scale: 0.9, ..o },
+            PoissonOptions {
+                samples_per_node: f64::NAN,
+                ..o
+            },
             PoissonOptions {
                 density_trim: 1.0,
                 ..o
