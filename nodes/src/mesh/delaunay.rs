@@ -36,7 +36,9 @@ pub enum DelaunayError {
         index: usize,
     },
     /// A coordinate is beyond what the exact predicates support.
-    #[error("point {index} has a coordinate beyond ±2^201, which the exact predicates cannot handle")]
+    #[error(
+        "point {index} has a coordinate beyond ±2^201, which the exact predicates cannot handle"
+    )]
     TooLarge {
         /// Index of the first bad point.
         index: usize,
@@ -172,8 +174,7 @@ pub struct Delaunay2d;
 impl Op for Delaunay2d {
     type Params = Delaunay2dParams;
     const ID: &'static str = "mesh.delaunay_2d";
-    const SUMMARY: &'static str =
-        "The Delaunay triangulation of 2-D points, as a flat mesh (z = 0) of counter-clockwise triangles.";
+    const SUMMARY: &'static str = "The Delaunay triangulation of 2-D points, as a flat mesh (z = 0) of counter-clockwise triangles.";
     const DOC: &'static str = r#"
 Triangulates 2-D points so that no point lies inside the circumcircle of any triangle (Delaunay;
 the triangulation maximizing the smallest angle), with the `spade` crate's exact predicates
@@ -442,7 +443,10 @@ mod tests {
         };
         assert_eq!(metrics["area"], 4.0);
         assert_eq!(metrics["hull_vertices"], 4.0);
-        let values = [Some(Value::Points2D(Arc::new(vec![[0.0, 0.0], [1.0, 1.0]])))];
+        let values = [Some(Value::Points2D(Arc::new(vec![
+            [0.0, 0.0],
+            [1.0, 1.0],
+        ])))];
         let e = op.run(&ctx, &Inputs::new(&specs, &values)).unwrap_err();
         assert!(e.to_string().contains("at least 3"), "{e}");
     }

@@ -607,9 +607,8 @@ mod tests {
                 sphere_tris += 1;
                 // Towards the camera: on the visible side of a sphere that is outward.
                 let n = tri_normal(&m, *t);
-                let centroid = [0, 1, 2].map(|k| {
-                    (f64::from(p[0][k]) + f64::from(p[1][k]) + f64::from(p[2][k])) / 3.0
-                });
+                let centroid = [0, 1, 2]
+                    .map(|k| (f64::from(p[0][k]) + f64::from(p[1][k]) + f64::from(p[2][k])) / 3.0);
                 let out = sub(centroid, c);
                 assert!(dot(n, out) > 0.0);
             } else {
@@ -620,12 +619,19 @@ mod tests {
             }
         }
         // Every vertex is on one of the two surfaces.
-        assert!(m.positions.iter().all(|&p| on_sphere(p) || on_background(p)));
+        assert!(
+            m.positions
+                .iter()
+                .all(|&p| on_sphere(p) || on_background(p))
+        );
         // The silhouette was cut: some triangles were dropped.
         assert!(o.dropped_discontinuity > 0);
         // Most of the sphere's pixels are meshed (all but a rim of grazing samples).
         let sphere_pixels = depth.iter().filter(|&&z| z < bg).count();
-        assert!(sphere_tris > sphere_pixels, "{sphere_tris} of {sphere_pixels}");
+        assert!(
+            sphere_tris > sphere_pixels,
+            "{sphere_tris} of {sphere_pixels}"
+        );
         // The sphere part is a disc: manifold and consistently oriented.
         let p: Vec<[f64; 3]> = m.positions.iter().map(|p| p.map(f64::from)).collect();
         HalfedgeMesh::from_triangles(p, &m.triangles)

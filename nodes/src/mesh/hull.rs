@@ -136,11 +136,7 @@ struct Face {
 /// The unit normal of triangle (a, b, c), counter-clockwise; computed at the corner opposite
 /// the longest edge (the best-conditioned cross product). Returns the corner used.
 fn plane(a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> ([f64; 3], [f64; 3]) {
-    let (lab, lbc, lca) = (
-        norm(sub(b, a)),
-        norm(sub(c, b)),
-        norm(sub(a, c)),
-    );
+    let (lab, lbc, lca) = (norm(sub(b, a)), norm(sub(c, b)), norm(sub(a, c)));
     // Corner opposite the longest edge, keeping the cyclic order.
     let (o, p, q) = if lbc >= lab && lbc >= lca {
         (a, b, c)
@@ -206,24 +202,6 @@ impl<'a> Builder<'a> {
     fn edge_index(&self, f: u32, a: u32, b: u32) -> Option<usize> {
         let v = self.faces[f as usize].v;
         (0..3).find(|&i| v[i] == a && v[(i + 1) % 3] == b)
-    }
-
-    /// Adds `p` to the outside set of the face in `candidates` it lies farthest above (by more
-    /// than ε); returns whether it was assigned.
-    fn assign(&mut self, p: u32, candidates: &[u32]) -> bool {
-        let mut best: Option<(u32, f64)> = None;
-        for &f in candidates {
-            let d = self.dist(f, p);
-            if d > self.eps && best.is_none_or(|(_, bd)| d > bd) {
-                best = Some((f, d));
-            }
-        }
-        if let Some((f, d)) = best {
-            self.faces[f as usize].outside.push((p, d));
-            true
-        } else {
-            false
-        }
     }
 
     /// One Quickhull step on face `f` (which has a non-empty outside set).
@@ -328,8 +306,23 @@ impl<'a> Builder<'a> {
                 self.faces[g as usize].nb[j] = nf;
             }
         }
+        // The new planes, contiguous: the loop below is the hot spot of Quickhull.
+        let planes: Vec<([f64; 3], [f64; 3])> = new
+            .iter()
+            .map(|&nf| (self.faces[nf as usize].n, self.faces[nf as usize].origin))
+            .collect();
         for p in orphans {
-            self.assign(p, &new);
+            let q = self.q[p as usize];
+            let mut best: Option<(usize, f64)> = None;
+            for (k, (n, o)) in planes.iter().enumerate() {
+                let d = dot(*n, sub(q, *o));
+                if d > self.eps && best.is_none_or(|(_, bd)| d > bd) {
+                    best = Some((k, d));
+                }
+            }
+            if let Some((k, d)) = best {
+                self.faces[new[k] as usize].outside.push((p, d));
+            }
         }
         for &nf in &new {
             if !self.faces[nf as usize].outside.is_empty() {
@@ -594,8 +587,7 @@ pub struct ConvexHull {
 impl Op for ConvexHull {
     type Params = ConvexHullParams;
     const ID: &'static str = "mesh.convex_hull";
-    const SUMMARY: &'static str =
-        "The 3-D convex hull of a point cloud (Quickhull): a closed, outward-oriented triangle mesh.";
+    const SUMMARY: &'static str = "The 3-D convex hull of a point cloud (Quickhull): a closed, outward-oriented triangle mesh.";
     const DOC: &'static str = r#"
 Quickhull (Barber, Dobkin & Huhdanpaa, "The Quickhull algorithm for convex hulls", ACM TOMS
 1996): from a tetrahedron of extreme points, repeatedly add the point farthest above a face,
@@ -731,10 +723,7 @@ mod tests {
                 }
             }
         }
-        let scale = pos
-            .iter()
-            .flatten()
-            .fold(0.0f64, |m, &x| m.max(x.abs()));
+        let scale = pos.iter().flatten().fold(0.0f64, |m, &x| m.max(x.abs()));
         for (i, d) in acc.iter().enumerate() {
             let di = dot(*d, pos[i]);
             for (j, q) in pos.iter().enumerate() {
@@ -883,7 +872,11 @@ mod tests {
             check_hull(&p, &h, 1e-9);
             let vs = 4.0 / 3.0 * std::f64::consts::PI * 8.0;
             assert!(h.volume <= vs * (1.0 + 1e-6), "{} > {vs}", h.volume);
-            assert!(h.volume > vs * if n >= 2000 { 0.99 } else { 0.95 }, "{}", h.volume);
+            assert!(
+                h.volume > vs * if n >= 2000 { 0.99 } else { 0.95 },
+                "{}",
+                h.volume
+            );
         }
     }
 
@@ -981,12 +974,53 @@ mod tests {
         assert_eq!(metrics["hull_vertices"], 8.0);
         assert!((metrics["volume"] - 30.0).abs() < 1e-9);
         let planar = PointCloud {
-            positions: vec![[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [1.0, 1.0, 1.0]],
+            positions: vec![
+                [0.0, 0.0, 1.0],
+                [1.0, 0.0, 1.0],
+                [0.0, 1.0, 1.0],
+                [1.0, 1.0, 1.0],
+            ],
             ..PointCloud::default()
         };
         let values = [Some(Value::PointCloud(Arc::new(planar)))];
         let e = op.run(&ctx, &Inputs::new(&specs, &values)).unwrap_err();
         assert!(e.to_string().contains("planar"), "{e}");
+    }
+
+    /// Timing at scale (release-like test profile): `cargo test -p ocellus-nodes --lib
+    /// mesh::hull::tests::large_clouds -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "slow: 10⁶-point hulls"]
+    fn large_clouds() {
+        for n in [100_000, 1_000_000] {
+            let mut rng = SplitMix64::new(5);
+            let cube: Vec<[f64; 3]> = f32_points(
+                &(0..n)
+                    .map(|_| [rng.uniform(), rng.uniform(), rng.uniform()])
+                    .collect::<Vec<_>>(),
+            );
+            let ball = f32_points(&sphere(n, [0.0; 3], 1.0, 6));
+            for (name, p) in [("cube", &cube), ("sphere", &ball)] {
+                let t = std::time::Instant::now();
+                let h = convex_hull(p, None).unwrap();
+                let dt = t.elapsed();
+                println!(
+                    "{name} n = {n}: {dt:?}, {} hull vertices, {} triangles, {} passes",
+                    h.vertices.len(),
+                    h.triangles.len(),
+                    h.passes
+                );
+                let mesh =
+                    HalfedgeMesh::from_triangles(hull_positions(p, &h), &h.triangles).unwrap();
+                mesh.validate().unwrap();
+                assert!(mesh.is_watertight());
+                assert_eq!(mesh.euler_characteristic(), 2);
+                assert_eq!(h.skipped_points, 0);
+                if name == "sphere" {
+                    assert!(h.vertices.len() as f64 > 0.999 * n as f64);
+                }
+            }
+        }
     }
 
     proptest! {
