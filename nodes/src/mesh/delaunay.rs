@@ -271,8 +271,8 @@ mod tests {
         (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
     }
 
-    /// > 0 when `d` is strictly inside the circumcircle of CCW (a, b, c); computed relative
-    /// to `d`.
+    /// Positive when `d` is strictly inside the circumcircle of CCW (a, b, c); computed
+    /// relative to `d`.
     fn incircle(a: [f64; 2], b: [f64; 2], c: [f64; 2], d: [f64; 2]) -> f64 {
         let r = |p: [f64; 2]| {
             let (x, y) = (p[0] - d[0], p[1] - d[1]);

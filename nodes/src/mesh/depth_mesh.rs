@@ -408,12 +408,9 @@ pub fn depth_mesh(
     let mesh = Mesh {
         positions: positions.iter().map(|p| p.map(|x| x as f32)).collect(),
         triangles: organized.triangles.clone(),
-        ..Mesh::default()
-    };
-    let mesh = Mesh {
         normals,
         colors,
-        ..mesh
+        ..Mesh::default()
     };
     Ok((mesh, organized))
 }

@@ -164,7 +164,7 @@ struct Builder<'a> {
     skipped: usize,
 }
 
-impl<'a> Builder<'a> {
+impl Builder<'_> {
     fn dist(&self, f: u32, p: u32) -> f64 {
         let face = &self.faces[f as usize];
         dot(face.n, sub(self.q[p as usize], face.origin))
@@ -348,7 +348,7 @@ fn argmax(ids: &[u32], key: impl Fn(u32) -> f64) -> (u32, f64) {
 fn quickhull(q: &[[f64; 3]], ids: &[u32], eps: f64) -> Result<(Vec<Face>, usize), HullError> {
     // Extreme points along the axes, then the farthest pair among them.
     let mut extremes = Vec::with_capacity(6);
-    for axis in 0..3 {
+    for axis in [0, 1, 2] {
         extremes.push(argmax(ids, |i| -q[i as usize][axis]).0);
         extremes.push(argmax(ids, |i| q[i as usize][axis]).0);
     }
@@ -499,7 +499,7 @@ pub fn convex_hull(points: &[[f64; 3]], tolerance: Option<f64>) -> Result<Hull, 
         .flat_map(|p| p.iter())
         .fold(0.0f64, |m, &x| m.max(x.abs()));
     let eps = tolerance.unwrap_or(RELATIVE_TOLERANCE * scale);
-    if scale == 0.0 || !(eps > 0.0) {
+    if scale == 0.0 || eps <= 0.0 || eps.is_nan() {
         return Err(HullError::Coincident(n));
     }
     let mut ids: Vec<u32> = (0..n as u32).collect();
