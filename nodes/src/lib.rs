@@ -174,6 +174,9 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<mesh::metrics::Measure>()?;
     registry.register::<mesh::metrics::Distance>()?;
     registry.register::<mesh::smooth::Smooth>()?;
+    registry.register::<mesh::hull::ConvexHull>()?;
+    registry.register::<mesh::delaunay::Delaunay2d>()?;
+    registry.register::<mesh::depth_mesh::FromDepth>()?;
     Ok(())
 }
 

@@ -3,8 +3,11 @@
 //! and PCL's territory — and triangle-mesh processing on a halfedge structure (normals,
 //! subdivision, simplification, metrics, smoothing).
 
+pub mod delaunay;
+pub mod depth_mesh;
 pub mod fit;
 pub mod halfedge;
+pub mod hull;
 pub mod icp;
 pub mod kdtree;
 pub mod marching_cubes;

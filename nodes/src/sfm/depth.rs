@@ -463,8 +463,49 @@ Example:
     }
 }
 
+/// The optional `color` input as u8 samples and their channel count; it must be `w` × `h`.
+pub(crate) fn color_input(
+    inputs: &Inputs<'_>,
+    w: usize,
+    h: usize,
+) -> Result<Option<(Vec<u8>, usize)>, OpError> {
+    match inputs.get("color") {
+        Some(Value::Image(c)) => {
+            if (c.width(), c.height()) != (w, h) {
+                return Err(OpError::input(
+                    "color",
+                    DepthError::ColorSize(c.width(), c.height(), w, h).to_string(),
+                ));
+            }
+            let u8_image = if c.depth() == Depth::U8 {
+                (**c).clone()
+            } else {
+                convert_type(c, Depth::U8, None, 0.0)
+                    .map_err(|e| OpError::input("color", e.to_string()))?
+            };
+            let channels = u8_image.channels().count();
+            match u8_image.into_data() {
+                PixelData::U8(v) => Ok(Some((v, channels))),
+                _ => Err(OpError::failed("colour conversion to u8 failed")),
+            }
+        }
+        Some(_) => Err(OpError::input("color", "expected an Image")),
+        None => Ok(None),
+    }
+}
+
+/// The optional `pose` input (camera_from_world).
+pub(crate) fn pose_input(inputs: &Inputs<'_>) -> Result<Option<Pose>, OpError> {
+    match inputs.get("pose") {
+        Some(Value::Pose(p)) => Ok(Some(*p)),
+        Some(_) => Err(OpError::input("pose", "expected a Pose")),
+        None => Ok(None),
+    }
+}
+
 impl DepthToPoints {
-    fn lens(&self, inputs: &Inputs<'_>, w: usize, h: usize) -> Result<Lens, OpError> {
+    /// The lens of the `camera` input, or of the `fx`, `fy`, `cx`, `cy` params.
+    pub(crate) fn lens(&self, inputs: &Inputs<'_>, w: usize, h: usize) -> Result<Lens, OpError> {
         match inputs.get("camera") {
             Some(Value::Camera(c)) => {
                 let c: &Camera = c;
@@ -512,34 +553,8 @@ impl Operator for DepthToPoints {
         }
         let (w, h) = (image.width(), image.height());
         let samples = samples_f32(image);
-        let color_u8 = match inputs.get("color") {
-            Some(Value::Image(c)) => {
-                if (c.width(), c.height()) != (w, h) {
-                    return Err(OpError::input(
-                        "color",
-                        DepthError::ColorSize(c.width(), c.height(), w, h).to_string(),
-                    ));
-                }
-                let u8_image = if c.depth() == Depth::U8 {
-                    (**c).clone()
-                } else {
-                    convert_type(c, Depth::U8, None, 0.0)
-                        .map_err(|e| OpError::input("color", e.to_string()))?
-                };
-                let channels = u8_image.channels().count();
-                match u8_image.into_data() {
-                    PixelData::U8(v) => Some((v, channels)),
-                    _ => return Err(OpError::failed("colour conversion to u8 failed")),
-                }
-            }
-            Some(_) => return Err(OpError::input("color", "expected an Image")),
-            None => None,
-        };
-        let pose = match inputs.get("pose") {
-            Some(Value::Pose(p)) => Some(*p),
-            Some(_) => return Err(OpError::input("pose", "expected a Pose")),
-            None => None,
-        };
+        let color_u8 = color_input(inputs, w, h)?;
+        let pose = pose_input(inputs)?;
         let lens = self.lens(inputs, w, h)?;
         let p = &self.params;
         let options = DepthOptions {
