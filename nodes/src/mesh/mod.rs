@@ -15,3 +15,4 @@ pub mod poisson;
 pub mod simplify;
 pub mod smooth;
 pub mod subdivide;
+pub mod tsdf;
