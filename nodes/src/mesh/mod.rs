@@ -18,3 +18,4 @@ pub mod poisson;
 pub mod simplify;
 pub mod smooth;
 pub mod subdivide;
+pub mod tsdf;
