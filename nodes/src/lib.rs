@@ -173,6 +173,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<mesh::metrics::Measure>()?;
     registry.register::<mesh::metrics::Distance>()?;
     registry.register::<mesh::smooth::Smooth>()?;
+    registry.register::<mesh::deform::Deform>()?;
     Ok(())
 }
 

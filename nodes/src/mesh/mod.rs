@@ -1,8 +1,9 @@
 //! The `mesh` family: point clouds (downsampling, outliers, normals), registration (ICP),
 //! primitive fitting, surface reconstruction (marching cubes, screened Poisson) — Open3D's
 //! and PCL's territory — and triangle-mesh processing on a halfedge structure (normals,
-//! subdivision, simplification, metrics, smoothing).
+//! subdivision, simplification, metrics, smoothing, handle-based deformation).
 
+pub mod deform;
 pub mod fit;
 pub mod halfedge;
 pub mod icp;
