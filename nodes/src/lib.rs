@@ -178,6 +178,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<mesh::delaunay::Delaunay2d>()?;
     registry.register::<mesh::depth_mesh::FromDepth>()?;
     registry.register::<mesh::tsdf::TsdfFusion>()?;
+    registry.register::<mesh::deform::Deform>()?;
     Ok(())
 }
 

@@ -1,9 +1,11 @@
 //! The `mesh` family: point clouds (downsampling, outliers, normals), registration (ICP),
-//! primitive fitting, surface reconstruction (marching cubes, screened Poisson) — Open3D's
-//! and PCL's territory — and triangle-mesh processing on a halfedge structure (normals,
-//! subdivision, simplification, metrics, smoothing).
+//! primitive fitting, surface reconstruction (marching cubes, screened Poisson, TSDF fusion,
+//! depth-map meshing, 2-D Delaunay, convex hulls) — Open3D's and PCL's territory — and
+//! triangle-mesh processing on a halfedge structure (normals, tangents, subdivision,
+//! simplification, metrics, smoothing, handle-based deformation).
 
 pub mod delaunay;
+pub mod deform;
 pub mod depth_mesh;
 pub mod fit;
 pub mod halfedge;
