@@ -1,7 +1,7 @@
 //! The `mesh` family: point clouds (downsampling, outliers, normals), registration (ICP),
 //! primitive fitting, surface reconstruction (marching cubes, screened Poisson) — Open3D's
 //! and PCL's territory — and triangle-mesh processing on a halfedge structure (normals,
-//! subdivision, simplification, metrics, smoothing).
+//! tangents, subdivision, simplification, metrics, smoothing).
 
 pub mod fit;
 pub mod halfedge;
@@ -15,3 +15,4 @@ pub mod poisson;
 pub mod simplify;
 pub mod smooth;
 pub mod subdivide;
+pub mod tangents;

@@ -958,6 +958,7 @@ pub fn to_mesh(surface: &IsoSurface) -> Mesh {
         ),
         uvs: None,
         colors: None,
+        tangents: None,
     }
 }
 
