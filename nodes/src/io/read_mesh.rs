@@ -3236,7 +3236,7 @@ mod tests {
         assert_eq!(mesh.triangles, vec![[0, 1, 2]]);
         // Zero tangents, zero handedness and NaN are errors naming the line.
         let header_lines = header(tw).lines().count();
-        for (body, line, kind) in [
+        for (body, at, kind) in [
             (
                 "0 0 0 1 0 0 1\n1 0 0 0 0 0 1\n0 1 0 1 0 0 1\n",
                 2,
@@ -3252,7 +3252,7 @@ mod tests {
             let text = format!("{}{body}3 0 1 2\n", header(tw));
             let err = parse_ply(text.as_bytes()).unwrap_err();
             assert!(kind(&err), "{err}");
-            assert_eq!(line(&err), header_lines + line, "{err}");
+            assert_eq!(line(&err), header_lines + at, "{err}");
         }
     }
 
