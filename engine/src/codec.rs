@@ -1,6 +1,6 @@
 //! Binary encoding of values for the on-disk result cache.
 //!
-//! # Format (version 1)
+//! # Format (version 3)
 //! Little-endian throughout. A file is
 //!
 //! ```text
@@ -23,7 +23,7 @@
 //! | 8 | PointCloud | `u64 n`, n × `f32 × 3`, `u8 flags (1 colors, 2 normals)`, then each present attribute as `u64 n` + items |
 //! | 9 | Tracks | `u64 tracks`, each `u64 n`, n × (`u32 image, u32 keypoint`) |
 //! | 10 | Reconstruction | cameras (`u64 n`, n × (`u32 id`, camera)), images (`u64 n`, n × (`u32 id, u32 camera_id`, string name, pose, `u64 n`, n × (`f64 x, f64 y, u8 has_point, u64 point_id`))), points (`u64 n`, n × (`u64 id, f64 × 3, u8 × 3, f64 error, u64 n`, n × `u32 image, u32 index`)) |
-//! | 11 | Mesh | mesh: positions (`u64 n`, `f32 × 3` each), triangles (`u64 n`, `u32 × 3` each), `u8 flags (1 normals, 2 uvs, 4 colors)`, then each present attribute as `u64 n` + items |
+//! | 11 | Mesh | mesh: positions (`u64 n`, `f32 × 3` each), triangles (`u64 n`, `u32 × 3` each), `u8 flags (1 normals, 2 uvs, 4 colors, 8 tangents)`, then each present attribute as `u64 n` + items (tangents `f32 × 4`) |
 //! | 12 | Scene | materials (`u64 n`, n × (string name, `f32 × 3` albedo, texture albedo, texture normal, `f32` roughness, texture, `f32` metalness, texture, `f32 × 3` emission, texture, `f32 × 5` specular shininess transmission ior opacity, `u8` shading)), objects (`u64 n`, n × (string name, shape, pose, `f64` scale, `u32` material)), lights (`u64 n`, n × (`u8 kind`, then 0 point `f64 × 3, f32 × 3`; 1 directional `f64 × 3, f32 × 3`; 2 area `f64 × 9, f32 × 3`; 3 environment `f32 × 3`, texture)), cameras (`u64 n`, n × (camera, pose, `f64` aperture radius, `f64` focus distance)); a texture is `u8 present`, then image (as tag 0 without the tag), `u8 wrap, u8 filter, f32 × 4 border, u32 max anisotropy, f32 × 2 uv scale`; a shape is `u8 kind`, then 0 mesh; 1 sphere `f64 × 4`; 2 plane `f64 × 7`; 3 quadric `f64 × 16` |
 //! | 13 | Animation | `f64 duration, u64 n`, n × (string target, `u64 n` times f64, `u64 width`, `u64 n` values f64) |
 //! | 14 | Scalar | `f64` |
@@ -64,8 +64,11 @@ use crate::value::{
 /// First four bytes of every encoding.
 pub const MAGIC: [u8; 4] = *b"OCVL";
 
-/// The format version written, and the only one read.
-pub const FORMAT_VERSION: u32 = 2;
+/// The format version written, and the only one read. Version 3 added mesh tangents (mesh
+/// flag 8). Version 2 files would still decode, but `io.read_mesh` results cached by a version 2
+/// build lack the tangents a PLY file may carry (and the STL support), so they are rejected as
+/// [`CodecError::UnsupportedVersion`] and recomputed, like any other cache miss.
+pub const FORMAT_VERSION: u32 = 3;
 
 /// Most lists nested inside one another (and so most `List<…>` levels in an element type) that
 /// decode.
@@ -302,7 +305,8 @@ impl Encoder {
         self.u32s(m.triangles.as_flattened());
         let flags = u8::from(m.normals.is_some())
             | u8::from(m.uvs.is_some()) << 1
-            | u8::from(m.colors.is_some()) << 2;
+            | u8::from(m.colors.is_some()) << 2
+            | u8::from(m.tangents.is_some()) << 3;
         self.u8(flags);
         if let Some(n) = &m.normals {
             self.len(n.len());
@@ -315,6 +319,10 @@ impl Encoder {
         if let Some(c) = &m.colors {
             self.len(c.len());
             self.f32s(c.as_flattened());
+        }
+        if let Some(t) = &m.tangents {
+            self.len(t.len());
+            self.f32s(t.as_flattened());
         }
     }
 
@@ -693,6 +701,12 @@ fn f32x3(b: &[u8; 12]) -> [f32; 3] {
     })
 }
 
+fn f32x4(b: &[u8; 16]) -> [f32; 4] {
+    std::array::from_fn(|i| {
+        f32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]])
+    })
+}
+
 fn f32x2(b: &[u8; 8]) -> [f32; 2] {
     std::array::from_fn(|i| {
         f32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]])
@@ -911,7 +925,7 @@ impl<'a> Decoder<'a> {
     fn mesh(&mut self) -> Result<Mesh, CodecError> {
         let positions = self.counted("mesh positions", f32x3)?;
         let triangles = self.counted("mesh triangles", u32x3)?;
-        let flags = self.flags(0b111, "mesh flags")?;
+        let flags = self.flags(0b1111, "mesh flags")?;
         let normals = if flags & 1 != 0 {
             Some(self.counted("mesh normals", f32x3)?)
         } else {
@@ -927,12 +941,18 @@ impl<'a> Decoder<'a> {
         } else {
             None
         };
+        let tangents = if flags & 8 != 0 {
+            Some(self.counted("mesh tangents", f32x4)?)
+        } else {
+            None
+        };
         Ok(Mesh {
             positions,
             triangles,
             normals,
             uvs,
             colors,
+            tangents,
         })
     }
 
@@ -1435,6 +1455,20 @@ mod tests {
             normals: Some(vec![[0.0, 0.0, 1.0]; 3]),
             uvs: None,
             colors: Some(vec![[0.25, 0.5, 1.0]; 3]),
+            tangents: None,
+        }
+    }
+
+    /// Every attribute, tangents included, with bit patterns worth keeping.
+    fn full_mesh() -> Mesh {
+        Mesh {
+            uvs: Some(vec![[0.0, 1.0], [-0.0, 0.5], [f32::MAX, 1e-45]]),
+            tangents: Some(vec![
+                [1.0, 0.0, 0.0, 1.0],
+                [0.0, -1.0, 0.0, -1.0],
+                [f32::from_bits(0x7fc0_0001), -0.0, f32::MIN_POSITIVE, -1.0],
+            ]),
+            ..mesh()
         }
     }
 
@@ -1539,6 +1573,7 @@ mod tests {
                 }],
             })),
             Value::Mesh(Arc::new(mesh())),
+            Value::Mesh(Arc::new(full_mesh())),
             Value::Mesh(Arc::new(Mesh::default())),
             Value::Scene(Arc::new(Scene {
                 materials: vec![
@@ -1921,5 +1956,53 @@ mod tests {
             b.extend_from_slice(&1.0f64.to_le_bytes());
         }
         assert!(matches!(decode_values(&b), Err(CodecError::Invalid { .. })));
+    }
+
+    #[test]
+    fn mesh_tangents_use_flag_8_and_keep_their_bits() {
+        let mesh = full_mesh();
+        let bytes = encode_values(&[Value::Mesh(Arc::new(mesh.clone()))]);
+        // Header (16 bytes), tag, 3 positions, 1 triangle: the flags byte follows.
+        let flags_at = 16 + 1 + 8 + 36 + 8 + 12;
+        assert_eq!(bytes[flags_at], 1 | 2 | 4 | 8);
+        let back = decode_values(&bytes).unwrap();
+        let Value::Mesh(m) = &back[0] else {
+            panic!("not a mesh: {back:?}")
+        };
+        let bits = |t: &Option<Vec<[f32; 4]>>| -> Vec<[u32; 4]> {
+            t.iter().flatten().map(|v| v.map(f32::to_bits)).collect()
+        };
+        assert_eq!(bits(&m.tangents), bits(&mesh.tangents));
+        assert_eq!(m.tangents.as_ref().map(Vec::len), Some(3));
+        // Without tangents the flag is clear and the payload is exactly 4 × 4 × n bytes shorter.
+        let plain = Mesh {
+            tangents: None,
+            ..mesh.clone()
+        };
+        let short = encode_values(&[Value::Mesh(Arc::new(plain))]);
+        assert_eq!(short[flags_at], 1 | 2 | 4);
+        assert_eq!(bytes.len() - short.len(), 8 + 3 * 16);
+        // An unknown flag bit is an error, not a silently dropped attribute.
+        let mut bad = bytes.clone();
+        bad[flags_at] |= 16;
+        assert!(matches!(
+            decode_values(&bad),
+            Err(CodecError::Invalid { .. })
+        ));
+        // Fewer tangents than the length says: truncated.
+        assert!(matches!(
+            decode_values(&bytes[..bytes.len() - 1]),
+            Err(CodecError::Truncated { .. })
+        ));
+        // A version 2 file (before tangents) is refused cleanly, so a cache recomputes it.
+        let mut old = short.clone();
+        old[4..8].copy_from_slice(&2u32.to_le_bytes());
+        assert_eq!(
+            decode_values(&old),
+            Err(CodecError::UnsupportedVersion {
+                found: 2,
+                supported: FORMAT_VERSION
+            })
+        );
     }
 }

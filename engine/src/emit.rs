@@ -38,7 +38,9 @@
 //! `f a/a/a …` (both). `NAME.ply`: vertex properties `float x y z`, `float nx ny nz`, `float s t`,
 //! `uchar red green blue` (each group only when present), and faces as
 //! `property list uchar int vertex_indices`. Mesh colors are linear RGB; both files store them
-//! sRGB-encoded, as viewers expect (floats 0..1 in OBJ, bytes in PLY).
+//! sRGB-encoded, as viewers expect (floats 0..1 in OBJ, bytes in PLY). A mesh with tangents gets
+//! `float tx ty tz tw` after the other PLY vertex properties (OBJ has no place for them). Both
+//! files come from [`crate::mesh_write`], which `io.write_mesh` uses too.
 //!
 //! **Scene.** One `NAME.json`: `{"materials":[{"name","albedo","roughness","metalness",
 //! "emission","specular","shininess","transmission","ior","opacity","shading","textures":
@@ -75,6 +77,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::image_io::{self, ImageIoError, write_atomic_with};
+use crate::mesh_write;
 use crate::summary::fmt_sig6;
 use crate::value::{
     Bvh, Camera, Channels, Depth, Descriptors, Distortion, Image, Light, Matrix, Mesh, PointCloud,
@@ -734,145 +737,13 @@ fn write_f32s(w: &mut dyn Write, values: &[f32]) -> io::Result<()> {
     Ok(())
 }
 
-/// Linear RGB → sRGB-encoded, clamped to 0..=1 (NaN → 0).
-fn linear_to_srgb(c: f32) -> f32 {
-    let c = if c.is_nan() { 0.0 } else { f64::from(c) };
-    let encoded = if c >= 1.0 {
-        // Exactly 1: the curve's formula lands a rounding error away from it.
-        1.0
-    } else if c <= 0.003_130_8 {
-        12.92 * c.max(0.0)
-    } else {
-        1.055 * c.powf(1.0 / 2.4) - 0.055
-    };
-    encoded as f32
-}
-
-fn srgb_byte(c: f32) -> u8 {
-    // In range by construction: linear_to_srgb returns 0..=1.
-    (linear_to_srgb(c) * 255.0).round() as u8
-}
-
 fn emit_mesh(dir: &Path, name: &str, mesh: &Mesh) -> Result<Vec<PathBuf>, EmitError> {
-    let n = mesh.positions.len();
-    check_attribute(name, "normals", mesh.normals.as_ref(), n)?;
-    check_attribute(name, "uvs", mesh.uvs.as_ref(), n)?;
-    check_attribute(name, "colors", mesh.colors.as_ref(), n)?;
-    if let Some((t, i)) = mesh
-        .triangles
-        .iter()
-        .enumerate()
-        .find_map(|(t, tri)| tri.iter().find(|&&i| i as usize >= n).map(|i| (t, *i)))
-    {
-        return Err(invalid(
-            name,
-            format!("triangle {t} uses vertex {i}, but the mesh has {n} vertices"),
-        ));
-    }
-    if n > i32::MAX as usize {
-        return Err(invalid(name, "PLY face indices are 32-bit signed integers"));
-    }
+    mesh_write::check_mesh(mesh).map_err(|reason| invalid(name, reason))?;
     let obj = dir.join(format!("{name}.obj"));
-    write_obj(&obj, mesh)?;
+    write_atomic_with(&obj, |w| mesh_write::write_obj(w, mesh)).map_err(io_error(&obj))?;
     let ply = dir.join(format!("{name}.ply"));
-    write_mesh_ply(&ply, mesh)?;
+    write_atomic_with(&ply, |w| mesh_write::write_ply(w, mesh, true)).map_err(io_error(&ply))?;
     Ok(vec![obj, ply])
-}
-
-fn write_obj(path: &Path, mesh: &Mesh) -> Result<(), EmitError> {
-    write_atomic_with(path, |w| {
-        writeln!(
-            w,
-            "# {} vertices, {} triangles",
-            mesh.positions.len(),
-            mesh.triangles.len()
-        )?;
-        for (i, [x, y, z]) in mesh.positions.iter().enumerate() {
-            write!(w, "v {x} {y} {z}")?;
-            if let Some([r, g, b]) = mesh.colors.as_ref().and_then(|c| c.get(i)) {
-                write!(
-                    w,
-                    " {} {} {}",
-                    linear_to_srgb(*r),
-                    linear_to_srgb(*g),
-                    linear_to_srgb(*b)
-                )?;
-            }
-            writeln!(w)?;
-        }
-        for [u, v] in mesh.uvs.iter().flatten() {
-            writeln!(w, "vt {u} {v}")?;
-        }
-        for [x, y, z] in mesh.normals.iter().flatten() {
-            writeln!(w, "vn {x} {y} {z}")?;
-        }
-        let (uvs, normals) = (mesh.uvs.is_some(), mesh.normals.is_some());
-        let mut line = String::new();
-        for triangle in &mesh.triangles {
-            line.clear();
-            line.push('f');
-            for &i in triangle {
-                let k = u64::from(i) + 1;
-                let _ = match (uvs, normals) {
-                    (false, false) => write!(line, " {k}"),
-                    (true, false) => write!(line, " {k}/{k}"),
-                    (false, true) => write!(line, " {k}//{k}"),
-                    (true, true) => write!(line, " {k}/{k}/{k}"),
-                };
-            }
-            line.push('\n');
-            w.write_all(line.as_bytes())?;
-        }
-        Ok(())
-    })
-    .map_err(io_error(path))
-}
-
-fn write_mesh_ply(path: &Path, mesh: &Mesh) -> Result<(), EmitError> {
-    let mut header = format!(
-        "ply\nformat binary_little_endian 1.0\nelement vertex {}\n\
-         property float x\nproperty float y\nproperty float z\n",
-        mesh.positions.len()
-    );
-    if mesh.normals.is_some() {
-        header.push_str("property float nx\nproperty float ny\nproperty float nz\n");
-    }
-    if mesh.uvs.is_some() {
-        header.push_str("property float s\nproperty float t\n");
-    }
-    if mesh.colors.is_some() {
-        header.push_str("property uchar red\nproperty uchar green\nproperty uchar blue\n");
-    }
-    let _ = write!(
-        header,
-        "element face {}\nproperty list uchar int vertex_indices\nend_header\n",
-        mesh.triangles.len()
-    );
-    write_atomic_with(path, |w| {
-        w.write_all(header.as_bytes())?;
-        for (i, p) in mesh.positions.iter().enumerate() {
-            write_f32s(w, p)?;
-            if let Some(n) = mesh.normals.as_ref().and_then(|n| n.get(i)) {
-                write_f32s(w, n)?;
-            }
-            if let Some(uv) = mesh.uvs.as_ref().and_then(|u| u.get(i)) {
-                write_f32s(w, uv)?;
-            }
-            if let Some(c) = mesh.colors.as_ref().and_then(|c| c.get(i)) {
-                w.write_all(&c.map(srgb_byte))?;
-            }
-        }
-        for triangle in &mesh.triangles {
-            let mut face = [3u8; 13];
-            for (dst, &i) in face[1..].as_chunks_mut::<4>().0.iter_mut().zip(triangle) {
-                // Indices were checked to be below the vertex count, itself ≤ i32::MAX.
-                *dst = i.to_le_bytes();
-            }
-            w.write_all(&face)?;
-        }
-        Ok(())
-    })
-    .map_err(io_error(path))
 }
 
 fn emit_reconstruction(
@@ -1444,6 +1315,7 @@ mod tests {
             uvs: uvs.then(|| vec![[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]),
             colors: colors
                 .then(|| vec![[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.5, 0.0, 2.0], [0.0; 3]]),
+            tangents: None,
         }
     }
 

@@ -595,6 +595,9 @@ fn mesh_fields(mesh: &Mesh) -> String {
         mesh.uvs.is_some(),
         mesh.colors.is_some()
     );
+    if mesh.tangents.is_some() {
+        s.push_str(", tangents: true");
+    }
     s
 }
 

@@ -775,6 +775,11 @@ pub struct Mesh {
     pub uvs: Option<Vec<[f32; 2]>>,
     /// Per-vertex linear RGB colors, if present.
     pub colors: Option<Vec<[f32; 3]>>,
+    /// Per-vertex tangents, if present: `xyz` a unit tangent orthogonal to the normal (along
+    /// increasing `u`), `w` = ±1 the handedness, so that the bitangent is `w · (n × t)` (the
+    /// MikkTSpace / glTF convention). Left out of JSON when absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tangents: Option<Vec<[f32; 4]>>,
 }
 
 /// One node of a [`Bvh`]: an axis-aligned box and either two children or a run of triangles
@@ -1340,6 +1345,7 @@ fn mesh_bytes(m: &Mesh) -> usize {
         + m.normals.as_ref().map_or(0, |n| n.len() * 12)
         + m.uvs.as_ref().map_or(0, |n| n.len() * 8)
         + m.colors.as_ref().map_or(0, |n| n.len() * 12)
+        + m.tangents.as_ref().map_or(0, |n| n.len() * 16)
 }
 
 #[cfg(test)]

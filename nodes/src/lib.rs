@@ -119,6 +119,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<io::read_colmap::ReadColmap>()?;
     registry.register::<io::read_poses::ReadPoses>()?;
     registry.register::<io::read_mesh::ReadMesh>()?;
+    registry.register::<io::write_mesh::WriteMesh>()?;
     registry.register::<io::read_scene::ReadScene>()?;
     registry.register::<optimize::affine_init::AffineInit>()?;
     registry.register::<render::raycast::BuildBvh>()?;
@@ -167,8 +168,9 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     // Surface reconstruction: point-cloud input and screened Poisson.
     registry.register::<io::read_point_cloud::ReadPointCloud>()?;
     registry.register::<mesh::poisson::Poisson>()?;
-    // Mesh processing: normals, subdivision, simplification, measurements, smoothing.
+    // Mesh processing: normals, tangents, subdivision, simplification, measurements, smoothing.
     registry.register::<mesh::normals::Normals>()?;
+    registry.register::<mesh::tangents::Tangents>()?;
     registry.register::<mesh::subdivide::Subdivide>()?;
     registry.register::<mesh::simplify::Simplify>()?;
     registry.register::<mesh::metrics::Measure>()?;

@@ -10,3 +10,4 @@ pub mod read_point_cloud;
 pub mod read_poses;
 pub mod read_scene;
 pub mod write_image;
+pub mod write_mesh;

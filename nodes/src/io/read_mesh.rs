@@ -1,4 +1,4 @@
-//! `io.read_mesh`: read a triangle mesh from a Wavefront OBJ or a PLY file.
+//! `io.read_mesh`: read a triangle mesh from a Wavefront OBJ, PLY or STL file.
 //!
 //! **Wavefront OBJ** (the text geometry format of Wavefront Technologies' Advanced Visualizer),
 //! read by [`parse_obj`]: `v x y z` (also `v x y z w`, `w` ignored, and `v x y z r g b` with an
@@ -26,11 +26,30 @@
 //! `uchar` `short` `ushort` `int` `uint` `float` `double` and `int8` … `float64`). The
 //! `vertex` element gives `x y z`, optionally `nx ny nz`, `u v` (or `s t`, `texture_u
 //! texture_v`) and `red green blue`; the `face` element's `vertex_indices` (or `vertex_index`)
-//! list gives the polygons. Other elements and properties, lists included, are skipped.
+//! list gives the polygons. Vertex properties `tx ty tz tw` (all four; as the engine's writer
+//! emits them) are read as tangents: `xyz` normalized (unless already unit to within 4 ulp, so
+//! written tangents read back bit for bit), `w` reduced to its sign ±1 (0 is an error). Other
+//! elements and properties, lists included, are skipped (`tx ty tz` without `tw` too).
 //! Bytes after the last element of a binary file are ignored; an ASCII file may only have
 //! whitespace there.
 //!
-//! Both formats: polygons are fan-triangulated (`a b c d` → `a b c`, `a c d`), keeping their
+//! **STL** (3D Systems' stereolithography format), read by [`parse_stl`], binary or ASCII. The
+//! size decides first: a file of exactly `84 + 50·n` bytes, `n` the `u32` at byte 80, is binary
+//! even when its 80-byte header starts with `solid` (many exporters write that). Otherwise a
+//! file that starts with `solid` (after optional whitespace, any case) and holds no NUL byte is
+//! ASCII, and anything else is a binary file whose size does not match its count: an error
+//! ([`MeshError::Truncated`] when it is shorter, [`MeshError::StlSize`] when longer). ASCII:
+//! `solid [name]`, then `facet normal nx ny nz` / `outer loop` / three `vertex x y z` /
+//! `endloop` / `endfacet` per triangle, then `endsolid [name]` (keywords in any case; more
+//! `solid` blocks may follow and are appended). STL stores every triangle's three corner
+//! positions; the reader welds corners with bitwise-identical positions (`0.0` and `-0.0` stay
+//! apart) into one vertex, numbered in order of first appearance, so the result is an indexed
+//! mesh and the same file always gives the same mesh. Facet normals are parsed (ASCII: they must
+//! be numbers) and then ignored: they are often zero or stale, and the triangle's corner order
+//! already gives its orientation (compute vertex normals with `mesh.normals`). The binary
+//! attribute byte count is ignored. Degenerate triangles are kept as the file has them.
+//!
+//! All formats: polygons are fan-triangulated (`a b c d` → `a b c`, `a c d`), keeping their
 //! counter-clockwise order, and faces with fewer than 3 corners are errors; normals are
 //! normalized (a zero normal is an error); positions, normals, uvs and colors must be finite
 //! 32-bit floats. Colors: the engine's emitter writes linear mesh colors sRGB-encoded (floats
@@ -39,10 +58,11 @@
 //! `float`/`double` PLY colors are taken as linear.
 //!
 //! Limits against hostile files, each a typed [`MeshError`] naming the line (text) or byte
-//! offset (binary): at most [`MAX_VERTICES`] vertices, [`MAX_FACES`] faces,
+//! offset (binary PLY and STL): at most [`MAX_VERTICES`] vertices, [`MAX_FACES`] faces,
 //! [`MAX_ELEMENT_RECORDS`] records of any other PLY element and [`MAX_TRIANGLES`] triangles,
 //! [`MAX_LIST_LEN`] entries in any list or polygon, and no PLY element count larger than the
-//! bytes after the header can hold (checked before anything is allocated).
+//! bytes after the header can hold (checked before anything is allocated); a binary STL's count
+//! must match its size exactly, also checked before allocating.
 
 use std::collections::HashMap;
 use std::fmt;
@@ -71,7 +91,7 @@ pub const MAX_LIST_LEN: usize = 1000;
 pub enum Location {
     /// A 1-based line: OBJ files, PLY headers and ASCII PLY bodies.
     Line(usize),
-    /// A 0-based byte offset from the start of the file: binary PLY bodies.
+    /// A 0-based byte offset from the start of the file: binary PLY bodies and binary STL.
     Byte(usize),
 }
 
@@ -87,9 +107,10 @@ impl fmt::Display for Location {
 /// Errors reading a Wavefront OBJ or PLY mesh.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum MeshError {
-    /// The file name ends in neither `.obj` nor `.ply`.
+    /// The file name ends in none of `.obj`, `.ply`, `.stl`.
     #[error(
-        "`{}`: unknown mesh format; the file name must end in .obj (Wavefront OBJ) or .ply (PLY)",
+        "`{}`: unknown mesh format; the file name must end in .obj (Wavefront OBJ), .ply (PLY) \
+         or .stl (STL)",
         path.display()
     )]
     UnknownExtension {
@@ -218,6 +239,22 @@ pub enum MeshError {
         /// Its corner count.
         corners: usize,
     },
+    /// A binary STL longer than its triangle count says (shorter ones are
+    /// [`MeshError::Truncated`]).
+    #[error(
+        "{at}: the binary STL header declares {count} triangles, which take 84 + 50 × {count} = \
+         {expected} bytes, but the file has {actual}"
+    )]
+    StlSize {
+        /// The count's offset (byte 80).
+        at: Location,
+        /// The declared triangle count.
+        count: u64,
+        /// The size that count implies.
+        expected: u64,
+        /// The file's size.
+        actual: u64,
+    },
 }
 
 impl MeshError {
@@ -236,7 +273,8 @@ impl MeshError {
             | MeshError::CountExceedsData { at, .. }
             | MeshError::ListTooLong { at, .. }
             | MeshError::Truncated { at, .. }
-            | MeshError::DegenerateFace { at, .. } => Some(*at),
+            | MeshError::DegenerateFace { at, .. }
+            | MeshError::StlSize { at, .. } => Some(*at),
         }
     }
 }
@@ -258,6 +296,17 @@ fn normalize(n: [f32; 3]) -> Option<[f32; 3]> {
     let n = n.map(f64::from);
     let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
     (len > 0.0 && len.is_finite()).then(|| n.map(|c| (c / len) as f32))
+}
+
+/// A tangent's unit direction: kept bit for bit when already unit to within 4 ulp (as written),
+/// else normalized; `None` for a zero vector.
+fn unit_tangent(t: [f32; 3]) -> Option<[f32; 3]> {
+    let len = t.map(f64::from).iter().map(|c| c * c).sum::<f64>().sqrt();
+    if (len - 1.0).abs() <= 4.0 * f64::from(f32::EPSILON) {
+        Some(t)
+    } else {
+        normalize(t)
+    }
 }
 
 /// Fan triangulation of one polygon (at least 3 corners).
@@ -668,6 +717,7 @@ impl ObjReader {
                 positions: self.positions,
                 triangles: Vec::new(),
                 colors,
+                tangents: None,
             });
         }
         let (uses_vt, uses_vn) = self.pattern.map_or((false, false), |(_, t, n)| (t, n));
@@ -689,6 +739,7 @@ impl ObjReader {
                 normals: None,
                 uvs: None,
                 colors,
+                tangents: None,
             });
         }
 
@@ -758,6 +809,7 @@ impl ObjReader {
             normals: uses_vn.then(|| attribute(2).map(|n| self.normals[n]).collect()),
             uvs: uses_vt.then(|| attribute(1).map(|t| self.texcoords[t]).collect()),
             colors: colors.map(|c| attribute(0).map(|v| c[v]).collect()),
+            tangents: None,
         })
     }
 }
@@ -1044,7 +1096,8 @@ const SLOT_X: usize = 0;
 const SLOT_NX: usize = 3;
 const SLOT_U: usize = 6;
 const SLOT_RED: usize = 8;
-const SLOTS: usize = 11;
+const SLOT_TX: usize = 11;
+const SLOTS: usize = 15;
 
 /// Which vertex properties feed which attribute.
 struct VertexLayout {
@@ -1052,6 +1105,7 @@ struct VertexLayout {
     slots: Vec<Option<usize>>,
     normals: bool,
     uvs: bool,
+    tangents: bool,
     /// Per color channel: the type's maximum for integer colors (sRGB-encoded), `None` for
     /// float colors (linear); `None` overall without colors.
     colors: Option<[Option<f64>; 3]>,
@@ -1113,6 +1167,9 @@ fn vertex_layout(element: &Element) -> Result<VertexLayout, MeshError> {
             break;
         }
     }
+    const TANGENT: [&str; 4] = ["tx", "ty", "tz", "tw"];
+    let tangents = TANGENT.iter().all(|&n| find(n).is_some())
+        && scalar_group(&TANGENT, &mut slots, SLOT_TX)?.is_some();
     let colors = scalar_group(&["red", "green", "blue"], &mut slots, SLOT_RED)?.map(|types| {
         let mut scale = [None; 3];
         for (s, ty) in scale.iter_mut().zip(types) {
@@ -1124,6 +1181,7 @@ fn vertex_layout(element: &Element) -> Result<VertexLayout, MeshError> {
         slots,
         normals,
         uvs,
+        tangents,
         colors,
     })
 }
@@ -1427,8 +1485,9 @@ fn read_vertices<S: Source>(
     let mut normals = layout.normals.then(|| Vec::with_capacity(n));
     let mut uvs = layout.uvs.then(|| Vec::with_capacity(n));
     let mut colors = layout.colors.map(|_| Vec::with_capacity(n));
+    let mut tangents = layout.tangents.then(|| Vec::with_capacity(n));
     const NAMES: [&str; SLOTS] = [
-        "x", "y", "z", "nx", "ny", "nz", "u", "v", "red", "green", "blue",
+        "x", "y", "z", "nx", "ny", "nz", "u", "v", "red", "green", "blue", "tx", "ty", "tz", "tw",
     ];
     for r in 0..n {
         let mut values = [0.0f64; SLOTS];
@@ -1491,10 +1550,28 @@ fn read_vertices<S: Source>(
             }
             colors.push(c);
         }
+        if let Some(tangents) = &mut tangents {
+            let t = group(SLOT_TX)?;
+            let w = finite(SLOT_TX + 3, values[SLOT_TX + 3])?;
+            if w == 0.0 {
+                return Err(MeshError::Syntax {
+                    at: ats[SLOT_TX + 3],
+                    message: format!(
+                        "tw of vertex {r} is 0; the tangent handedness must be +1 or -1"
+                    ),
+                });
+            }
+            let unit = unit_tangent(t).ok_or_else(|| MeshError::ZeroNormal {
+                at: ats[SLOT_TX],
+                what: format!("the tangent of vertex {r}"),
+            })?;
+            tangents.push([unit[0], unit[1], unit[2], w.signum()]);
+        }
     }
     mesh.normals = normals;
     mesh.uvs = uvs;
     mesh.colors = colors;
+    mesh.tangents = tangents;
     Ok(())
 }
 
@@ -1627,6 +1704,354 @@ pub fn parse_ply(bytes: &[u8]) -> Result<Mesh, MeshError> {
 }
 
 // ---------------------------------------------------------------------------------------------
+// STL.
+
+/// Bytes of a binary STL's header and triangle count.
+const STL_HEADER_BYTES: u64 = 84;
+/// Bytes of one binary STL triangle record.
+const STL_RECORD_BYTES: u64 = 50;
+
+/// Corners welded by the bits of their positions, numbered in order of first appearance.
+#[derive(Default)]
+struct Welder {
+    ids: HashMap<[u32; 3], u32>,
+    positions: Vec<[f32; 3]>,
+    triangles: Vec<[u32; 3]>,
+}
+
+impl Welder {
+    fn with_capacity(triangles: usize) -> Welder {
+        Welder {
+            ids: HashMap::with_capacity(triangles.min(1 << 20)),
+            positions: Vec::with_capacity(triangles.min(1 << 20)),
+            triangles: Vec::with_capacity(triangles),
+        }
+    }
+
+    fn vertex(&mut self, p: [f32; 3], at: Location) -> Result<u32, MeshError> {
+        if let Some(&id) = self.ids.get(&p.map(f32::to_bits)) {
+            return Ok(id);
+        }
+        if self.positions.len() >= MAX_VERTICES {
+            return Err(MeshError::TooMany {
+                at,
+                what: "distinct vertex positions",
+                count: self.positions.len() as u64 + 1,
+                limit: MAX_VERTICES as u64,
+            });
+        }
+        let id = self.positions.len() as u32;
+        self.positions.push(p);
+        self.ids.insert(p.map(f32::to_bits), id);
+        Ok(id)
+    }
+
+    fn triangle(&mut self, t: [u32; 3], at: Location) -> Result<(), MeshError> {
+        if self.triangles.len() >= MAX_TRIANGLES {
+            return Err(MeshError::TooMany {
+                at,
+                what: "triangles",
+                count: self.triangles.len() as u64 + 1,
+                limit: MAX_TRIANGLES as u64,
+            });
+        }
+        self.triangles.push(t);
+        Ok(())
+    }
+
+    fn finish(self) -> Mesh {
+        Mesh {
+            positions: self.positions,
+            triangles: self.triangles,
+            ..Mesh::default()
+        }
+    }
+}
+
+/// Whether an STL file is binary (see the [module documentation](self)): its size matches the
+/// count at byte 80, or it does not look like ASCII (`solid` first, no NUL byte).
+pub fn stl_is_binary(bytes: &[u8]) -> bool {
+    if let Some(n) = bytes.get(80..84).and_then(|b| b.first_chunk::<4>()) {
+        let n = u64::from(u32::from_le_bytes(*n));
+        if STL_HEADER_BYTES + STL_RECORD_BYTES * n == bytes.len() as u64 {
+            return true;
+        }
+    }
+    let start = bytes
+        .iter()
+        .position(|b| !b.is_ascii_whitespace())
+        .unwrap_or(bytes.len());
+    let rest = bytes.get(start..).unwrap_or(&[]);
+    let solid = rest
+        .get(..5)
+        .is_some_and(|k| k.eq_ignore_ascii_case(b"solid"))
+        && rest.get(5).is_none_or(|b| b.is_ascii_whitespace());
+    !solid || bytes.contains(&0)
+}
+
+fn stl_f32(bytes: &[u8], at: usize) -> f32 {
+    let b = bytes
+        .get(at..)
+        .and_then(|r| r.first_chunk::<4>())
+        .copied()
+        .unwrap_or([0; 4]);
+    f32::from_le_bytes(b)
+}
+
+fn parse_stl_binary(bytes: &[u8]) -> Result<Mesh, MeshError> {
+    let Some(count) = bytes.get(80..84).and_then(|b| b.first_chunk::<4>()) else {
+        return Err(MeshError::Truncated {
+            at: Location::Byte(bytes.len()),
+            what: "the end of the 84-byte binary STL header (80 bytes, then the triangle \
+                   count; an ASCII STL starts with `solid`)"
+                .into(),
+        });
+    };
+    let count = u64::from(u32::from_le_bytes(*count));
+    let expected = STL_HEADER_BYTES + STL_RECORD_BYTES * count;
+    let actual = bytes.len() as u64;
+    if actual < expected {
+        let complete = (actual - STL_HEADER_BYTES) / STL_RECORD_BYTES;
+        return Err(MeshError::Truncated {
+            at: Location::Byte((STL_HEADER_BYTES + STL_RECORD_BYTES * complete) as usize),
+            what: format!(
+                "triangle {complete} of the {count} its header declares (that many take \
+                 84 + 50 × {count} = {expected} bytes; the file has {actual})"
+            ),
+        });
+    }
+    if actual > expected {
+        return Err(MeshError::StlSize {
+            at: Location::Byte(80),
+            count,
+            expected,
+            actual,
+        });
+    }
+    if count > MAX_TRIANGLES as u64 {
+        return Err(MeshError::TooMany {
+            at: Location::Byte(80),
+            what: "triangles",
+            count,
+            limit: MAX_TRIANGLES as u64,
+        });
+    }
+    // The size matched, so `count` records of 50 bytes follow.
+    let mut welder = Welder::with_capacity(count as usize);
+    for k in 0..count as usize {
+        let record = STL_HEADER_BYTES as usize + STL_RECORD_BYTES as usize * k;
+        // Bytes 0..12: the facet normal, ignored; 48..50: the attribute byte count, ignored.
+        let mut triangle = [0u32; 3];
+        for (c, slot) in triangle.iter_mut().enumerate() {
+            let corner = record + 12 + 12 * c;
+            let mut p = [0.0f32; 3];
+            for (axis, (dst, name)) in p.iter_mut().zip(["x", "y", "z"]).enumerate() {
+                let at = corner + 4 * axis;
+                let v = stl_f32(bytes, at);
+                if !v.is_finite() {
+                    return Err(MeshError::NonFinite {
+                        at: Location::Byte(at),
+                        what: format!("{name} of corner {c} of triangle {k}"),
+                        value: v.to_string(),
+                    });
+                }
+                *dst = v;
+            }
+            *slot = welder.vertex(p, Location::Byte(corner))?;
+        }
+        welder.triangle(triangle, Location::Byte(record))?;
+    }
+    Ok(welder.finish())
+}
+
+/// The tokens of an ASCII STL, with their lines.
+struct StlText<'a> {
+    bytes: &'a [u8],
+    pos: usize,
+    line: usize,
+}
+
+impl<'a> StlText<'a> {
+    fn token(&mut self) -> Option<(&'a [u8], usize)> {
+        let bytes: &'a [u8] = self.bytes;
+        while let Some(&b) = bytes.get(self.pos) {
+            if b == b'\n' {
+                self.line += 1;
+            } else if !b.is_ascii_whitespace() {
+                break;
+            }
+            self.pos += 1;
+        }
+        let start = self.pos;
+        while bytes
+            .get(self.pos)
+            .is_some_and(|b| !b.is_ascii_whitespace())
+        {
+            self.pos += 1;
+        }
+        bytes
+            .get(start..self.pos)
+            .filter(|t| !t.is_empty())
+            .map(|t| (t, self.line))
+    }
+
+    /// Skips the rest of the line (a solid's name).
+    fn skip_line(&mut self) {
+        match self
+            .bytes
+            .get(self.pos..)
+            .and_then(|r| r.iter().position(|&b| b == b'\n'))
+        {
+            Some(k) => {
+                self.pos += k + 1;
+                self.line += 1;
+            }
+            None => self.pos = self.bytes.len(),
+        }
+    }
+
+    /// The next token, which must be `keyword` (any case).
+    fn expect(&mut self, keyword: &str, facet: usize) -> Result<(), MeshError> {
+        match self.token() {
+            Some((t, _)) if t.eq_ignore_ascii_case(keyword.as_bytes()) => Ok(()),
+            Some((t, line)) => {
+                let hint = if keyword == "endloop" && t.eq_ignore_ascii_case(b"vertex") {
+                    "; a facet has exactly 3 vertices"
+                } else {
+                    ""
+                };
+                Err(MeshError::Syntax {
+                    at: Location::Line(line),
+                    message: format!(
+                        "expected `{keyword}` in facet {facet}, found `{}`{hint}",
+                        String::from_utf8_lossy(t)
+                    ),
+                })
+            }
+            None => Err(MeshError::Truncated {
+                at: Location::Line(self.line),
+                what: format!("`{keyword}` in facet {facet}"),
+            }),
+        }
+    }
+
+    /// The next token as an `f32` (`finite`: NaN and infinities are errors).
+    fn number(&mut self, what: &dyn Fn() -> String, finite: bool) -> Result<f32, MeshError> {
+        let Some((t, line)) = self.token() else {
+            return Err(MeshError::Truncated {
+                at: Location::Line(self.line),
+                what: what(),
+            });
+        };
+        let at = Location::Line(line);
+        let token = || String::from_utf8_lossy(t).into_owned();
+        let v: f32 = std::str::from_utf8(t)
+            .ok()
+            .and_then(|s| s.parse().ok())
+            .ok_or_else(|| MeshError::BadNumber {
+                at,
+                what: what(),
+                token: token(),
+                expected: "number",
+            })?;
+        if finite && !v.is_finite() {
+            return Err(MeshError::NonFinite {
+                at,
+                what: what(),
+                value: token(),
+            });
+        }
+        Ok(v)
+    }
+}
+
+fn parse_stl_ascii(bytes: &[u8]) -> Result<Mesh, MeshError> {
+    let mut text = StlText {
+        bytes,
+        pos: 0,
+        line: 1,
+    };
+    let mut welder = Welder::default();
+    let mut solids = 0usize;
+    loop {
+        match text.token() {
+            None if solids > 0 => break,
+            None => {
+                return Err(MeshError::Truncated {
+                    at: Location::Line(text.line),
+                    what: "`solid`".into(),
+                });
+            }
+            Some((t, _)) if t.eq_ignore_ascii_case(b"solid") => {}
+            Some((t, line)) => {
+                return Err(MeshError::Syntax {
+                    at: Location::Line(line),
+                    message: format!(
+                        "expected `solid`, found `{}`; only another solid may follow `endsolid`",
+                        String::from_utf8_lossy(t)
+                    ),
+                });
+            }
+        }
+        text.skip_line();
+        solids += 1;
+        loop {
+            let facet = welder.triangles.len();
+            let (t, line) = text.token().ok_or_else(|| MeshError::Truncated {
+                at: Location::Line(text.line),
+                what: "`endsolid`".into(),
+            })?;
+            if t.eq_ignore_ascii_case(b"endsolid") {
+                text.skip_line();
+                break;
+            }
+            if !t.eq_ignore_ascii_case(b"facet") {
+                return Err(MeshError::Syntax {
+                    at: Location::Line(line),
+                    message: format!(
+                        "expected `facet` or `endsolid`, found `{}`",
+                        String::from_utf8_lossy(t)
+                    ),
+                });
+            }
+            let at = Location::Line(line);
+            text.expect("normal", facet)?;
+            for axis in ["x", "y", "z"] {
+                // Parsed, then ignored (see the module documentation).
+                text.number(&|| format!("normal {axis} of facet {facet}"), false)?;
+            }
+            text.expect("outer", facet)?;
+            text.expect("loop", facet)?;
+            let mut triangle = [0u32; 3];
+            for (c, slot) in triangle.iter_mut().enumerate() {
+                text.expect("vertex", facet)?;
+                let corner = Location::Line(text.line);
+                let mut p = [0.0f32; 3];
+                for (dst, axis) in p.iter_mut().zip(["x", "y", "z"]) {
+                    *dst = text.number(&|| format!("vertex {c} {axis} of facet {facet}"), true)?;
+                }
+                *slot = welder.vertex(p, corner)?;
+            }
+            text.expect("endloop", facet)?;
+            text.expect("endfacet", facet)?;
+            welder.triangle(triangle, at)?;
+        }
+    }
+    Ok(welder.finish())
+}
+
+/// Parses an STL file, binary or ASCII (see the [module documentation](self)), welding
+/// bitwise-identical positions into an indexed mesh. Errors name the byte offset (binary) or
+/// line (ASCII).
+pub fn parse_stl(bytes: &[u8]) -> Result<Mesh, MeshError> {
+    if stl_is_binary(bytes) {
+        parse_stl_binary(bytes)
+    } else {
+        parse_stl_ascii(bytes)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
 // Files and the operator.
 
 /// A mesh file format, chosen by extension.
@@ -1636,10 +2061,12 @@ pub enum MeshFormat {
     Obj,
     /// PLY, Turk, Stanford 1994 (`.ply`).
     Ply,
+    /// STL, binary or ASCII (`.stl`).
+    Stl,
 }
 
 impl MeshFormat {
-    /// The format of `path` by its extension (`.obj`, `.ply`, any case).
+    /// The format of `path` by its extension (`.obj`, `.ply`, `.stl`, any case).
     pub fn from_path(path: &Path) -> Result<MeshFormat, MeshError> {
         let ext = path
             .extension()
@@ -1648,6 +2075,7 @@ impl MeshFormat {
         match ext.as_deref() {
             Some("obj") => Ok(MeshFormat::Obj),
             Some("ply") => Ok(MeshFormat::Ply),
+            Some("stl") => Ok(MeshFormat::Stl),
             _ => Err(MeshError::UnknownExtension {
                 path: path.to_path_buf(),
             }),
@@ -1655,7 +2083,7 @@ impl MeshFormat {
     }
 }
 
-/// Reads and parses a Wavefront OBJ or PLY file, by extension. OBJ text that is not UTF-8 is
+/// Reads and parses a Wavefront OBJ, PLY or STL file, by extension. OBJ text that is not UTF-8 is
 /// read lossily (only comments and names can hold other bytes).
 pub fn read_mesh(path: &Path) -> Result<Mesh, OpError> {
     let format = MeshFormat::from_path(path).map_err(|e| OpError::failed(e.to_string()))?;
@@ -1663,6 +2091,7 @@ pub fn read_mesh(path: &Path) -> Result<Mesh, OpError> {
     let mesh = match format {
         MeshFormat::Obj => parse_obj(&String::from_utf8_lossy(&bytes)),
         MeshFormat::Ply => parse_ply(&bytes),
+        MeshFormat::Stl => parse_stl(&bytes),
     };
     mesh.map_err(|e| OpError::failed(format!("{}: {e}", path.display())))
 }
@@ -1670,13 +2099,13 @@ pub fn read_mesh(path: &Path) -> Result<Mesh, OpError> {
 ocellus_engine::params! {
     /// Parameters of [`ReadMesh`].
     pub struct ReadMeshParams {
-        /// The mesh file, `.obj` (Wavefront OBJ) or `.ply` (PLY); relative paths resolve
-        /// against the graph file's folder.
+        /// The mesh file, `.obj` (Wavefront OBJ), `.ply` (PLY) or `.stl` (STL, binary or
+        /// ASCII); relative paths resolve against the graph file's folder.
         path: PathBuf = PathBuf::new(),
     }
 }
 
-/// `io.read_mesh`. See [`parse_obj`] and [`parse_ply`].
+/// `io.read_mesh`. See [`parse_obj`], [`parse_ply`] and [`parse_stl`].
 pub struct ReadMesh {
     params: ReadMeshParams,
 }
@@ -1684,9 +2113,9 @@ pub struct ReadMesh {
 impl Op for ReadMesh {
     type Params = ReadMeshParams;
     const ID: &'static str = "io.read_mesh";
-    const SUMMARY: &'static str = "Read a triangle mesh from a Wavefront OBJ or PLY file.";
+    const SUMMARY: &'static str = "Read a triangle mesh from a Wavefront OBJ, PLY or STL file.";
     const DOC: &'static str = r#"
-Reads a triangle mesh; the extension picks the format (.obj or .ply, any case).
+Reads a triangle mesh; the extension picks the format (.obj, .ply or .stl, any case).
 
 Wavefront OBJ: `v x y z` (optionally `r g b`, sRGB-encoded 0..1), `vt u v`, `vn x y z` and `f`
 faces with corners `v`, `v/vt`, `v//vn` or `v/vt/vn`, 1-based or negative (relative) indices;
@@ -1696,16 +2125,22 @@ split), ordered by position; when nothing needs splitting, vertices and indices 
 
 PLY (Turk, Stanford 1994): ascii, binary_little_endian or binary_big_endian 1.0, any scalar
 types; vertex `x y z`, optional `nx ny nz`, `u v` (or `s t`, `texture_u texture_v`) and
-`red green blue`; face list `vertex_indices` (or `vertex_index`). Other elements and
-properties are skipped.
+`red green blue` and `tx ty tz tw` (tangents, w = ±1); face list `vertex_indices` (or
+`vertex_index`). Other elements and properties are skipped.
+
+STL, binary or ASCII: a file of exactly 84 + 50·n bytes (n the count at byte 80) is binary,
+even if it starts with "solid"; otherwise a text file starting with `solid` is ASCII. Corners
+with bitwise-identical positions are welded into one vertex (numbered by first appearance), so
+the mesh comes out indexed; facet normals are ignored (the corner order gives the orientation;
+use `mesh.normals`). A binary file whose size does not match its count is an error.
 
 Polygons are fan-triangulated in their (counter-clockwise) order; normals are normalized.
 Colors come out linear: OBJ colors and integer PLY colors are sRGB-decoded (as `--emit` writes
 them), float PLY colors are taken as linear. Files written by `--emit` read back exactly.
 
 Malformed files are errors naming the line (OBJ, PLY header and ascii body) or byte offset
-(binary PLY): bad numbers, NaN/Inf, indices out of range, zero normals, mixed attributes,
-truncation. At most 10⁸ vertices, 10⁸ faces and 10⁸ triangles, lists of at most 1000 entries;
+(binary PLY and STL): bad numbers, NaN/Inf, indices out of range, zero normals, mixed
+attributes, truncation. At most 10⁸ vertices, 10⁸ faces and 10⁸ triangles, lists of at most 1000 entries;
 a PLY count larger than the file can hold is rejected before anything is allocated.
 
 Example:
@@ -1720,7 +2155,7 @@ Example:
         vec![PortSpec::new(
             "mesh",
             PortType::Mesh,
-            "The triangle mesh, with the file's normals, uvs and colors when it has them.",
+            "The triangle mesh, with the file's normals, uvs, colors and tangents when it has them.",
         )]
     }
 
@@ -1776,11 +2211,17 @@ mod tests {
             mesh.normals.as_ref().map(Vec::len),
             mesh.uvs.as_ref().map(Vec::len),
             mesh.colors.as_ref().map(Vec::len),
+            mesh.tangents.as_ref().map(Vec::len),
         ]
         .into_iter()
         .flatten()
         {
             assert_eq!(len, n);
+        }
+        for t in mesh.tangents.iter().flatten() {
+            let len = t[..3].iter().map(|c| c * c).sum::<f32>().sqrt();
+            assert!((len - 1.0).abs() < 1e-5, "{t:?}");
+            assert!(t[3] == 1.0 || t[3] == -1.0, "{t:?}");
         }
         for v in mesh.normals.iter().flatten() {
             let len = v.iter().map(|c| c * c).sum::<f32>().sqrt();
@@ -2303,6 +2744,7 @@ mod tests {
                 [c(10), c(20), c(30)],
                 [c(1), c(2), c(3)],
             ]),
+            tangents: None,
         }
     }
 
@@ -2758,6 +3200,304 @@ mod tests {
     }
 
     // -----------------------------------------------------------------------------------------
+    // PLY tangents.
+
+    #[test]
+    fn ply_tangents_are_read_when_all_four_properties_are_there() {
+        let header = |props: &str| {
+            format!(
+                "ply\nformat ascii 1.0\n{XYZ}{props}element face 1\n\
+                 property list uchar int vertex_indices\nend_header\n"
+            )
+        };
+        let tw = "property float tx\nproperty float ty\nproperty float tz\nproperty float tw\n";
+        let text = format!(
+            "{}0 0 0 1 0 0 1\n1 0 0 0 2 0 -1\n0 1 0 0.6 0.8 0 -3\n3 0 1 2\n",
+            header(tw)
+        );
+        let mesh = parse_ply(text.as_bytes()).unwrap();
+        assert_eq!(
+            mesh.tangents,
+            Some(vec![
+                [1.0, 0.0, 0.0, 1.0],
+                [0.0, 1.0, 0.0, -1.0],
+                [0.6, 0.8, 0.0, -1.0]
+            ])
+        );
+        check_valid(&mesh);
+        // Without `tw` the three are some other data: skipped, as before.
+        let three = "property float tx\nproperty float ty\nproperty float tz\n";
+        let text = format!(
+            "{}0 0 0 1 0 0\n1 0 0 0 2 0\n0 1 0 5 5 5\n3 0 1 2\n",
+            header(three)
+        );
+        let mesh = parse_ply(text.as_bytes()).unwrap();
+        assert_eq!(mesh.tangents, None);
+        assert_eq!(mesh.triangles, vec![[0, 1, 2]]);
+        // Zero tangents, zero handedness and NaN are errors naming the line.
+        let header_lines = header(tw).lines().count();
+        for (body, at, kind) in [
+            (
+                "0 0 0 1 0 0 1\n1 0 0 0 0 0 1\n0 1 0 1 0 0 1\n",
+                2,
+                (|e| matches!(e, MeshError::ZeroNormal { .. })) as Kind,
+            ),
+            ("0 0 0 1 0 0 1\n1 0 0 1 0 0 0\n0 1 0 1 0 0 1\n", 2, |e| {
+                matches!(e, MeshError::Syntax { .. })
+            }),
+            ("0 0 0 1 0 0 1\n1 0 0 1 0 0 1\n0 1 0 1 nan 0 1\n", 3, |e| {
+                matches!(e, MeshError::NonFinite { .. })
+            }),
+        ] {
+            let text = format!("{}{body}3 0 1 2\n", header(tw));
+            let err = parse_ply(text.as_bytes()).unwrap_err();
+            assert!(kind(&err), "{err}");
+            assert_eq!(line(&err), header_lines + at, "{err}");
+        }
+    }
+
+    // -----------------------------------------------------------------------------------------
+    // STL.
+
+    type Soup = Vec<[[f32; 3]; 3]>;
+
+    /// A tetrahedron as a triangle soup, outward and counter-clockwise.
+    fn tetra_soup() -> Soup {
+        let p = [
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+        ];
+        [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]
+            .map(|t: [usize; 3]| t.map(|i| p[i]))
+            .to_vec()
+    }
+
+    /// A binary STL of `soup` whose header starts with `start`, with facet normals (7, 7, 7)
+    /// and attribute counts 0xcdab (both ignored).
+    fn stl_binary(soup: &[[[f32; 3]; 3]], start: [u8; 5]) -> Vec<u8> {
+        let mut b = vec![b' '; 80];
+        b[..5].copy_from_slice(&start);
+        b.extend_from_slice(&(soup.len() as u32).to_le_bytes());
+        for t in soup {
+            for v in [[7.0f32; 3], t[0], t[1], t[2]] {
+                for c in v {
+                    b.extend_from_slice(&c.to_le_bytes());
+                }
+            }
+            b.extend_from_slice(&[0xab, 0xcd]);
+        }
+        b
+    }
+
+    /// An ASCII STL of `soup`: facet `k` starts on line `2 + 7k`, its vertex `c` is on line
+    /// `4 + 7k + c`.
+    fn stl_ascii(soup: &[[[f32; 3]; 3]]) -> String {
+        let mut s = String::from("solid tetra\n");
+        for t in soup {
+            s.push_str("  facet normal 0 0 0\n    outer loop\n");
+            for v in t {
+                s.push_str(&format!("      vertex {} {} {}\n", v[0], v[1], v[2]));
+            }
+            s.push_str("    endloop\n  endfacet\n");
+        }
+        s.push_str("endsolid tetra\n");
+        s
+    }
+
+    /// Each triangle's corner positions, by their bits.
+    fn soup_bits(mesh: &Mesh) -> Vec<[[u32; 3]; 3]> {
+        mesh.triangles
+            .iter()
+            .map(|t| t.map(|i| mesh.positions[i as usize].map(f32::to_bits)))
+            .collect()
+    }
+
+    #[test]
+    fn stl_binary_ascii_and_solid_headed_binary_give_the_same_welded_mesh() {
+        let soup = tetra_soup();
+        // Positions by first appearance: corner 0 of triangle 0, then its corners 2 and 1, …
+        let expected = Mesh {
+            positions: vec![
+                [0.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0],
+                [1.0, 0.0, 0.0],
+                [0.0, 0.0, 1.0],
+            ],
+            triangles: vec![[0, 1, 2], [0, 2, 3], [0, 3, 1], [2, 1, 3]],
+            ..Mesh::default()
+        };
+        let binary = stl_binary(&soup, *b"abcde");
+        assert!(stl_is_binary(&binary));
+        assert_eq!(parse_stl(&binary).unwrap(), expected);
+        // A binary header starting with "solid": the size decides.
+        let solid = stl_binary(&soup, *b"solid");
+        assert!(stl_is_binary(&solid));
+        assert_eq!(parse_stl(&solid).unwrap(), expected);
+        let ascii = stl_ascii(&soup);
+        assert!(!stl_is_binary(ascii.as_bytes()));
+        assert_eq!(parse_stl(ascii.as_bytes()).unwrap(), expected);
+        // Keyword case, CRLF, tabs and a nameless solid do not matter.
+        let loose = ascii
+            .replace("solid tetra", "SOLID")
+            .replace("vertex", "VERTEX")
+            .replace("  ", "\t")
+            .replace('\n', "\r\n");
+        assert_eq!(parse_stl(loose.as_bytes()).unwrap(), expected);
+        // Each triangle keeps its corner positions and order (its orientation).
+        let want: Vec<[[u32; 3]; 3]> = soup
+            .iter()
+            .map(|t| t.map(|p| p.map(f32::to_bits)))
+            .collect();
+        assert_eq!(soup_bits(&expected), want);
+        // Solids that follow one another are appended, welded across.
+        let twice = format!("{ascii}{ascii}");
+        let both = parse_stl(twice.as_bytes()).unwrap();
+        assert_eq!(both.positions, expected.positions);
+        assert_eq!(both.triangles.len(), 8);
+        assert_eq!(both.triangles[4..], expected.triangles[..]);
+        // Empty files of both kinds.
+        assert_eq!(
+            parse_stl(&stl_binary(&[], *b"solid")).unwrap(),
+            Mesh::default()
+        );
+        assert_eq!(
+            parse_stl(b"solid empty\nendsolid empty\n").unwrap(),
+            Mesh::default()
+        );
+        assert_eq!(parse_stl(b"  solid\nendsolid").unwrap(), Mesh::default());
+    }
+
+    #[test]
+    fn stl_welds_only_bitwise_equal_positions() {
+        let soup = vec![
+            [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+            [[-0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 1e-45]],
+            [[0.0, 1.0, 1e-45], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
+        ];
+        for bytes in [stl_binary(&soup, *b"xxxxx"), stl_ascii(&soup).into_bytes()] {
+            let mesh = parse_stl(&bytes).unwrap();
+            // -0.0 and the subnormal are vertices of their own; repeats reuse the first.
+            assert_eq!(mesh.positions.len(), 5);
+            assert_eq!(mesh.triangles, vec![[0, 1, 2], [3, 1, 4], [4, 1, 0]]);
+            assert_eq!(mesh.positions[3][0].to_bits(), (-0.0f32).to_bits());
+            check_valid(&mesh);
+        }
+    }
+
+    #[test]
+    fn stl_binary_errors_name_the_byte() {
+        let good = stl_binary(&tetra_soup(), *b"solid");
+        // Truncated mid-record: the first incomplete triangle's offset.
+        let err = parse_stl(&good[..good.len() - 10]).unwrap_err();
+        assert!(matches!(err, MeshError::Truncated { .. }), "{err}");
+        assert_eq!(byte(&err), 84 + 3 * 50);
+        assert!(err.to_string().contains("triangle 3 of the 4"), "{err}");
+        // Shorter than the header (one that does not start with "solid"); empty.
+        let plain = stl_binary(&tetra_soup(), *b"abcde");
+        let err = parse_stl(&plain[..50]).unwrap_err();
+        assert!(matches!(err, MeshError::Truncated { .. }), "{err}");
+        assert_eq!(byte(&err), 50);
+        assert_eq!(byte(&parse_stl(b"").unwrap_err()), 0);
+        // A count too large for the file, and one too small.
+        let mut more = good.clone();
+        more[80..84].copy_from_slice(&5u32.to_le_bytes());
+        let err = parse_stl(&more).unwrap_err();
+        assert!(matches!(err, MeshError::Truncated { .. }), "{err}");
+        assert_eq!(byte(&err), 84 + 4 * 50);
+        let mut fewer = good.clone();
+        fewer[80..84].copy_from_slice(&3u32.to_le_bytes());
+        assert_eq!(
+            parse_stl(&fewer).unwrap_err(),
+            MeshError::StlSize {
+                at: Location::Byte(80),
+                count: 3,
+                expected: 234,
+                actual: 284
+            }
+        );
+        // An absurd count fails before anything is allocated.
+        let mut huge = good.clone();
+        huge[80..84].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(matches!(
+            parse_stl(&huge).unwrap_err(),
+            MeshError::Truncated { .. }
+        ));
+        // NaN and infinite corners: the coordinate's offset.
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            let mut b = good.clone();
+            let at = 84 + 2 * 50 + 12 + 12 + 4; // triangle 2, corner 1, y
+            b[at..at + 4].copy_from_slice(&bad.to_le_bytes());
+            let err = parse_stl(&b).unwrap_err();
+            assert!(matches!(err, MeshError::NonFinite { .. }), "{err}");
+            assert_eq!(byte(&err), at);
+            assert!(
+                err.to_string().contains("y of corner 1 of triangle 2"),
+                "{err}"
+            );
+        }
+        // Facet normals are ignored, NaN included.
+        let mut b = good.clone();
+        b[84..88].copy_from_slice(&f32::NAN.to_le_bytes());
+        assert_eq!(parse_stl(&b).unwrap(), parse_stl(&good).unwrap());
+    }
+
+    #[test]
+    fn stl_ascii_errors_name_the_line() {
+        let good = stl_ascii(&tetra_soup());
+        let edit = |from: &str, to: &str| good.replacen(from, to, 1);
+        // Facet 0's vertices are on lines 4, 5, 6; facet 1 starts on line 9.
+        let cases: Vec<(String, usize, Kind)> = vec![
+            (edit("vertex 0 1 0", "vertex 0 nan 0"), 5, |e| {
+                matches!(e, MeshError::NonFinite { .. })
+            }),
+            (edit("vertex 0 1 0", "vertex 0 1e39 0"), 5, |e| {
+                matches!(e, MeshError::NonFinite { .. })
+            }),
+            (edit("vertex 0 1 0", "vertex 0 one 0"), 5, |e| {
+                matches!(e, MeshError::BadNumber { .. })
+            }),
+            (edit("facet normal 0 0 0", "facet normal 0 x 0"), 2, |e| {
+                matches!(e, MeshError::BadNumber { .. })
+            }),
+            (
+                edit("    endloop", "      vertex 1 1 1\n    endloop"),
+                7,
+                |e| matches!(e, MeshError::Syntax { message, .. } if message.contains("exactly 3")),
+            ),
+            (edit("outer loop", "outer ring"), 3, |e| {
+                matches!(e, MeshError::Syntax { .. })
+            }),
+            (edit("  facet", "  facade"), 2, |e| {
+                matches!(e, MeshError::Syntax { .. })
+            }),
+            (format!("{good}junk\n"), 31, |e| {
+                matches!(e, MeshError::Syntax { .. })
+            }),
+            (good.replace("endsolid tetra\n", ""), 30, |e| {
+                matches!(e, MeshError::Truncated { .. })
+            }),
+            (good[..good.find("endloop").unwrap()].to_string(), 7, |e| {
+                matches!(e, MeshError::Truncated { .. })
+            }),
+        ];
+        for (text, at, kind) in cases {
+            let err = parse_stl(text.as_bytes()).unwrap_err();
+            assert!(kind(&err), "{err}");
+            assert_eq!(line(&err), at, "{err}\n{text}");
+        }
+        // "solid" alone is not enough to make a file with NUL bytes ASCII.
+        let mut nul = good.clone().into_bytes();
+        nul[20] = 0;
+        assert!(stl_is_binary(&nul));
+        assert!(matches!(
+            parse_stl(&nul).unwrap_err(),
+            MeshError::StlSize { .. } | MeshError::Truncated { .. }
+        ));
+    }
+
+    // -----------------------------------------------------------------------------------------
     // Round trips through the engine's emitter.
 
     struct Lcg(u64);
@@ -2818,6 +3558,7 @@ mod tests {
             normals,
             uvs,
             colors,
+            tangents: None,
         }
     }
 
@@ -2949,11 +3690,17 @@ mod tests {
         );
         out.push(format!("{SQUARE}f 1 2 3\nf 1 3 4\n").into_bytes());
         out.push(b"v 0 0 0 1 0 0\nv 1 0 0 0 1 0\nv 0 1 0 0 0 1\nf 1 2 3\n".to_vec());
+        out.push(stl_binary(&tetra_soup(), *b"abcde"));
+        out.push(stl_binary(&tetra_soup(), *b"solid"));
+        out.push(stl_ascii(&tetra_soup()).into_bytes());
         out
     }
 
     fn check_parsers(bytes: &[u8]) {
         if let Ok(mesh) = parse_ply(bytes) {
+            check_valid(&mesh);
+        }
+        if let Ok(mesh) = parse_stl(bytes) {
             check_valid(&mesh);
         }
         if let Ok(mesh) = parse_obj(&String::from_utf8_lossy(bytes)) {
@@ -3025,12 +3772,19 @@ mod tests {
         #[test]
         fn random_bytes_never_panic(
             bytes in prop::collection::vec(any::<u8>(), 0..400),
-            prefix in 0usize..3,
+            prefix in 0usize..5,
         ) {
             let mut input = match prefix {
                 0 => Vec::new(),
                 1 => ply("binary_little_endian", &format!("{XYZ}{FACES}"), &[]),
-                _ => ply("ascii", &format!("{XYZ}{FACES}"), &[]),
+                2 => ply("ascii", &format!("{XYZ}{FACES}"), &[]),
+                3 => b"solid random\n  facet normal 0 0 1\n".to_vec(),
+                _ => {
+                    // A binary STL header whose count matches 0..=7 random records.
+                    let mut h = vec![0u8; 80];
+                    h.extend_from_slice(&((bytes.len() / 50) as u32).to_le_bytes());
+                    h
+                }
             };
             input.extend_from_slice(&bytes);
             check_parsers(&input);
@@ -3069,7 +3823,9 @@ mod tests {
     #[test]
     fn seeds_are_valid() {
         for (k, s) in seeds().iter().enumerate() {
-            let ok = parse_ply(s).is_ok() || parse_obj(&String::from_utf8_lossy(s)).is_ok();
+            let ok = parse_ply(s).is_ok()
+                || parse_obj(&String::from_utf8_lossy(s)).is_ok()
+                || parse_stl(s).is_ok();
             assert!(ok, "seed {k}");
         }
     }
@@ -3103,8 +3859,11 @@ mod tests {
         };
         let dir = scratch("operator");
 
-        let err = build(&dir.join("mesh.stl")).err().unwrap();
-        assert!(err.contains(".obj") && err.contains(".ply"), "{err}");
+        let err = build(&dir.join("mesh.off")).err().unwrap();
+        assert!(
+            err.contains(".obj") && err.contains(".ply") && err.contains(".stl"),
+            "{err}"
+        );
         assert!(build(&dir.join("mesh")).is_err());
         assert!(build(Path::new("")).is_err());
 
@@ -3141,10 +3900,22 @@ mod tests {
             MeshFormat::from_path(Path::new("a.obj")),
             Ok(MeshFormat::Obj)
         );
+        assert_eq!(
+            MeshFormat::from_path(Path::new("a.STL")),
+            Ok(MeshFormat::Stl)
+        );
         assert!(matches!(
             MeshFormat::from_path(Path::new("a.obj.gz")),
             Err(MeshError::UnknownExtension { .. })
         ));
+        // An STL through the operator: welded, with the file's triangles.
+        let stl = dir.join("tetra.stl");
+        std::fs::write(&stl, stl_binary(&tetra_soup(), *b"solid")).unwrap();
+        let Some(Value::Mesh(m)) = run(&build(&stl).unwrap()).unwrap() else {
+            panic!("no mesh")
+        };
+        assert_eq!(m.positions.len(), 4);
+        assert_eq!(m.triangles.len(), 4);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

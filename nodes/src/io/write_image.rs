@@ -36,7 +36,7 @@ impl Operator for WriteImage {
 }
 
 /// `dir/name.ext` → `dir/name_000k.ext`.
-fn numbered(path: &std::path::Path, k: usize) -> PathBuf {
+pub(crate) fn numbered(path: &std::path::Path, k: usize) -> PathBuf {
     let stem = path
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())

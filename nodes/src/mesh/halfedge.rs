@@ -1141,6 +1141,7 @@ pub fn mesh_positions(mesh: &Mesh) -> Result<Vec<[f64; 3]>, MeshError> {
         ("normals", mesh.normals.as_ref().map(Vec::len)),
         ("uvs", mesh.uvs.as_ref().map(Vec::len)),
         ("colors", mesh.colors.as_ref().map(Vec::len)),
+        ("tangents", mesh.tangents.as_ref().map(Vec::len)),
     ] {
         if let Some(len) = len
             && len != n
@@ -1188,6 +1189,7 @@ pub fn mesh_of(positions: &[[f64; 3]], triangles: Vec<[u32; 3]>) -> Mesh {
         normals: None,
         uvs: None,
         colors: None,
+        tangents: None,
     }
 }
 

@@ -20,4 +20,5 @@ pub mod poisson;
 pub mod simplify;
 pub mod smooth;
 pub mod subdivide;
+pub mod tangents;
 pub mod tsdf;

@@ -137,8 +137,9 @@ Each vertex normal is the normalized sum of the normals of the triangles around 
 
 Triangles are taken counter-clockwise, so normals point to the side from which the corners
 turn counter-clockwise. A vertex without faces (or only degenerate ones) gets +z and is
-counted in the metric `vertices_without_normal`. Positions, triangles and other attributes
-pass through unchanged; no manifold structure is needed.
+counted in the metric `vertices_without_normal`. Positions, triangles, uvs and colors pass
+through unchanged; tangents, which belong to the old normals, are dropped (rerun
+`mesh.tangents`). No manifold structure is needed.
 
 Metrics: `vertices`, `triangles`, `vertices_without_normal`.
 
@@ -178,6 +179,8 @@ impl Operator for Normals {
         let (normals, missing) = vertex_normals(&positions, &mesh.triangles, self.weighting);
         let out = Mesh {
             normals: Some(normals.iter().map(|n| n.map(|v| v as f32)).collect()),
+            // Tangents are orthogonal to the old normals; `mesh.tangents` recomputes them.
+            tangents: None,
             ..Mesh::clone(mesh)
         };
         let mut m = Metrics::new();

@@ -1121,6 +1121,7 @@ pub fn to_mesh(surface: &IsoSurface) -> Mesh {
         ),
         uvs: None,
         colors: None,
+        tangents: None,
     }
 }
 

@@ -141,7 +141,8 @@ only, so flat regions stay put (a vertex whose weights do not sum to a positive 
 uniform weights). With `mu` (Taubin, "A signal processing approach to fair surface design",
 SIGGRAPH 1995) every λ step is followed by a μ step, μ < −λ, which keeps the volume that plain
 Laplacian smoothing shrinks. Connectivity is unchanged; normals, if present, are recomputed
-(angle-weighted); colors and texture coordinates pass through.
+(angle-weighted); colors and texture coordinates pass through; tangents are dropped (rerun
+`mesh.tangents`).
 
 Metrics: `iterations`, `max_displacement` (scene units).
 
@@ -202,6 +203,8 @@ impl Operator for Smooth {
         let result = Mesh {
             positions: out.iter().map(|v| v.map(|x| x as f32)).collect(),
             normals,
+            // Moved vertices invalidate tangent frames; `mesh.tangents` recomputes them.
+            tangents: None,
             ..Mesh::clone(mesh)
         };
         let mut m = Metrics::new();

@@ -504,6 +504,7 @@ impl Operator for Subdivide {
             normals,
             uvs,
             colors,
+            tangents: None,
         };
         let mut m = Metrics::new();
         m.insert("input_triangles".into(), mesh.triangles.len() as f64);

@@ -104,6 +104,7 @@ pub fn bumpy_icosphere(subdivisions: u32, amplitude: f32, seed: u64) -> Mesh {
         normals: Some(normals),
         uvs: None,
         colors: None,
+        tangents: None,
     }
 }
 

@@ -2927,6 +2927,7 @@ mod tests {
                 [0.0, uv_max],
             ]),
             colors: None,
+            tangents: None,
         }
     }
 
