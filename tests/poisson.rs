@@ -22,7 +22,7 @@ use std::sync::Arc;
 
 use common::{Rng, length, root, sample_mesh, temp_dir};
 use ocellus_engine::emit::emit_value;
-use ocellus_engine::value::{Mesh, Metrics, PointCloud, Value};
+use ocellus_engine::value::{Metrics, PointCloud, Value};
 
 const POINTS: usize = 30_000;
 const NOISE: f64 = 0.002;

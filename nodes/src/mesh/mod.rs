@@ -4,8 +4,8 @@
 //! triangle-mesh processing on a halfedge structure (normals, tangents, subdivision,
 //! simplification, metrics, smoothing, handle-based deformation).
 
-pub mod delaunay;
 pub mod deform;
+pub mod delaunay;
 pub mod depth_mesh;
 pub mod fit;
 pub mod halfedge;
