@@ -443,11 +443,14 @@ fn cosine_weights(xyz: &[[f32; 3]], w: usize, h: usize) -> Vec<f32> {
         .collect()
 }
 
+/// An axis-aligned box by its smallest and largest corners.
+pub type Bounds = ([f64; 3], [f64; 3]);
+
 /// The bounding box of every valid back-projected sample of `frames` (world coordinates).
 pub fn depth_bounds(
     frames: &[DepthFrame<'_>],
     options: &TsdfOptions,
-) -> Result<Option<([f64; 3], [f64; 3])>, TsdfError> {
+) -> Result<Option<Bounds>, TsdfError> {
     let mut lo = [f64::INFINITY; 3];
     let mut hi = [f64::NEG_INFINITY; 3];
     for (index, f) in frames.iter().enumerate() {
@@ -706,8 +709,8 @@ impl TsdfVolume {
                 && v.weight > 0.0
                 && *wc > 0.0
             {
-                for k in 0..3 {
-                    s[k] += wc * f64::from(v.rgb[k]);
+                for (sk, rk) in s.iter_mut().zip(v.rgb) {
+                    *sk += wc * f64::from(rk);
                 }
                 total += wc;
             }
@@ -919,8 +922,8 @@ fn integrate_slab(
             {
                 let w0 = f64::from(c.weight);
                 let w1 = w0 + wf;
-                for m in 0..3 {
-                    c.rgb[m] = ((f64::from(c.rgb[m]) * w0 + f64::from(rgb[m]) * wf) / w1) as f32;
+                for (cm, im) in c.rgb.iter_mut().zip(rgb.iter()) {
+                    *cm = ((f64::from(*cm) * w0 + f64::from(*im) * wf) / w1) as f32;
                 }
                 c.weight = w1.min(max_weight) as f32;
             }
