@@ -31,8 +31,8 @@ use super::normals::{NormalWeighting, cross, dot, norm, sub, vertex_normals};
 use crate::geometry::camera::Lens;
 use crate::geometry::rectify::samples_f32;
 use crate::sfm::depth::{
-    DepthKind, DepthOptions, DepthToPoints, DepthToPointsParams, color_input, depth_to_points,
-    pose_input,
+    DepthKind, DepthOptions, DepthToPoints, DepthToPointsParams, color_input, depth_image_ports,
+    depth_to_points, pose_input,
 };
 
 /// Options of [`triangulate_organized`].
@@ -261,31 +261,7 @@ Example:
 "#;
 
     fn inputs() -> Vec<PortSpec> {
-        vec![
-            PortSpec::new(
-                "depth",
-                PortType::Image,
-                "Depth, one channel (u8, u16 or f32), scaled by depth_scale.",
-            ),
-            PortSpec::new(
-                "color",
-                PortType::Image,
-                "Colour of the same size (gray, RGB or RGBA; u8, or f32 in [0, 1]).",
-            )
-            .optional(),
-            PortSpec::new(
-                "camera",
-                PortType::Camera,
-                "Intrinsics and lens (replaces fx, fy, cx, cy).",
-            )
-            .optional(),
-            PortSpec::new(
-                "pose",
-                PortType::Pose,
-                "camera_from_world: the mesh in world coordinates.",
-            )
-            .optional(),
-        ]
+        depth_image_ports("camera_from_world: the mesh in world coordinates.")
     }
 
     fn outputs() -> Vec<PortSpec> {

@@ -1117,26 +1117,7 @@ Example:
             (None, None) => {}
             _ => return Err("give both `min` and `max`, or neither".into()),
         }
-        if !(p.depth_scale.is_finite() && p.depth_scale > 0.0) {
-            return Err(format!(
-                "`depth_scale` must be finite and > 0, got {}",
-                p.depth_scale
-            ));
-        }
-        if !(p.min_depth.is_finite() && p.min_depth >= 0.0) {
-            return Err(format!(
-                "`min_depth` must be finite and ≥ 0, got {}",
-                p.min_depth
-            ));
-        }
-        if let Some(max) = p.max_depth
-            && !(max.is_finite() && max > p.min_depth)
-        {
-            return Err(format!(
-                "`max_depth` must be finite and > min_depth ({}), got {max}",
-                p.min_depth
-            ));
-        }
+        crate::sfm::depth::check_depth_scaling(p.depth_scale, p.min_depth, p.max_depth)?;
         if let Some(w) = p.max_weight
             && !(w.is_finite() && w > 0.0)
         {

@@ -152,8 +152,11 @@ pub fn framing_camera(
         target,
         image_up,
     )?;
-    let light_elevation = p.light_elevation_deg;
-    let to_light = orbit_direction(&frame, p.azimuth_deg + p.light_azimuth_deg, light_elevation);
+    let to_light = orbit_direction(
+        &frame,
+        p.azimuth_deg + p.light_azimuth_deg,
+        p.light_elevation_deg,
+    );
     Ok((scene_camera_from_look_at(&la), to_light.map(|c| -c)))
 }
 

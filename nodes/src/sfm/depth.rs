@@ -327,6 +327,58 @@ fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
+/// The input ports of an operator that reads one depth image like `sfm.depth_to_points`:
+/// `depth`, optional `color`, `camera` and `pose` (documented by `pose_doc`).
+pub(crate) fn depth_image_ports(pose_doc: &'static str) -> Vec<PortSpec> {
+    vec![
+        PortSpec::new(
+            "depth",
+            PortType::Image,
+            "Depth, one channel (u8, u16 or f32), scaled by depth_scale.",
+        ),
+        PortSpec::new(
+            "color",
+            PortType::Image,
+            "Colour of the same size (gray, RGB or RGBA; u8, or f32 in [0, 1]).",
+        )
+        .optional(),
+        PortSpec::new(
+            "camera",
+            PortType::Camera,
+            "Intrinsics and lens (replaces fx, fy, cx, cy).",
+        )
+        .optional(),
+        PortSpec::new("pose", PortType::Pose, pose_doc).optional(),
+    ]
+}
+
+/// Checks the depth scaling shared by the depth-image operators: `depth_scale` finite and
+/// positive, `min_depth` finite and ≥ 0, `max_depth` (if any) finite and above `min_depth`.
+pub(crate) fn check_depth_scaling(
+    depth_scale: f64,
+    min_depth: f64,
+    max_depth: Option<f64>,
+) -> Result<(), String> {
+    if !(depth_scale.is_finite() && depth_scale > 0.0) {
+        return Err(format!(
+            "`depth_scale` must be finite and > 0, got {depth_scale}"
+        ));
+    }
+    if !(min_depth.is_finite() && min_depth >= 0.0) {
+        return Err(format!(
+            "`min_depth` must be finite and ≥ 0, got {min_depth}"
+        ));
+    }
+    if let Some(max) = max_depth
+        && !(max.is_finite() && max > min_depth)
+    {
+        return Err(format!(
+            "`max_depth` must be finite and > min_depth ({min_depth}), got {max}"
+        ));
+    }
+    Ok(())
+}
+
 /// `sfm.depth_to_points`. See [`depth_to_points`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct DepthToPoints {
@@ -370,31 +422,7 @@ Example:
 "#;
 
     fn inputs() -> Vec<PortSpec> {
-        vec![
-            PortSpec::new(
-                "depth",
-                PortType::Image,
-                "Depth, one channel (u8, u16 or f32), scaled by depth_scale.",
-            ),
-            PortSpec::new(
-                "color",
-                PortType::Image,
-                "Colour of the same size (gray, RGB or RGBA; u8, or f32 in [0, 1]).",
-            )
-            .optional(),
-            PortSpec::new(
-                "camera",
-                PortType::Camera,
-                "Intrinsics and lens (replaces fx, fy, cx, cy).",
-            )
-            .optional(),
-            PortSpec::new(
-                "pose",
-                PortType::Pose,
-                "camera_from_world: points in world coordinates.",
-            )
-            .optional(),
-        ]
+        depth_image_ports("camera_from_world: points in world coordinates.")
     }
 
     fn outputs() -> Vec<PortSpec> {
@@ -418,26 +446,7 @@ Example:
     }
 
     fn new(p: DepthToPointsParams) -> Result<Self, String> {
-        if !(p.depth_scale.is_finite() && p.depth_scale > 0.0) {
-            return Err(format!(
-                "`depth_scale` must be finite and > 0, got {}",
-                p.depth_scale
-            ));
-        }
-        if !(p.min_depth.is_finite() && p.min_depth >= 0.0) {
-            return Err(format!(
-                "`min_depth` must be finite and ≥ 0, got {}",
-                p.min_depth
-            ));
-        }
-        if let Some(max) = p.max_depth
-            && !(max.is_finite() && max > p.min_depth)
-        {
-            return Err(format!(
-                "`max_depth` must be finite and > min_depth ({}), got {max}",
-                p.min_depth
-            ));
-        }
+        check_depth_scaling(p.depth_scale, p.min_depth, p.max_depth)?;
         for (name, v) in [("fx", p.fx), ("fy", p.fy), ("cx", p.cx), ("cy", p.cy)] {
             if let Some(v) = v
                 && !v.is_finite()
