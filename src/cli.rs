@@ -283,6 +283,7 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
                 args.cache.clone()
             },
             progress: Some(progress.callback()),
+            memory_cache: None,
         };
         let result = ocellus_engine::run(&graph, &options);
         progress.finish();

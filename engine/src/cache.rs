@@ -51,3 +51,82 @@ impl DiskCache {
 pub fn content_hash(bytes: &[u8]) -> [u8; 32] {
     *blake3::hash(bytes).as_bytes()
 }
+
+/// An in-memory result cache shared by the runs of one animation (one run per frame), so a
+/// node whose key does not change between frames is computed once.
+///
+/// Entries live for one *generation*: [`MemoryCache::end_generation`] (called after each
+/// frame) drops every entry the frame did not store, load or touch (every node a run needs is
+/// touched, cached or not), so a node whose parameters change every frame does not accumulate
+/// one result per frame.
+#[derive(Debug, Default)]
+pub struct MemoryCache {
+    inner: std::sync::Mutex<MemoryGenerations>,
+}
+
+#[derive(Debug, Default)]
+struct MemoryGenerations {
+    current: std::collections::HashMap<[u8; 32], std::sync::Arc<[Value]>>,
+    previous: std::collections::HashMap<[u8; 32], std::sync::Arc<[Value]>>,
+}
+
+impl MemoryCache {
+    /// An empty cache.
+    pub fn new() -> MemoryCache {
+        MemoryCache::default()
+    }
+
+    /// The stored result for `key`, if present and of the expected types; a hit keeps the
+    /// entry alive for the next generation.
+    pub fn load(&self, key: &[u8; 32], types: &[PortType]) -> Option<std::sync::Arc<[Value]>> {
+        let mut inner = self.inner.lock().ok()?;
+        let values = match inner.current.get(key) {
+            Some(v) => v.clone(),
+            None => {
+                let v = inner.previous.remove(key)?;
+                inner.current.insert(*key, v.clone());
+                v
+            }
+        };
+        let fits = values.len() == types.len()
+            && values.iter().zip(types).all(|(v, t)| &v.port_type() == t);
+        fits.then_some(values)
+    }
+
+    /// Keeps the entry for `key` (if any) alive for the next generation without reading it:
+    /// a run touches the key of every node it needs, so the upstream of a cached node survives
+    /// frames in which only the cached node itself was read.
+    pub fn touch(&self, key: &[u8; 32]) {
+        if let Ok(mut inner) = self.inner.lock()
+            && let Some(v) = inner.previous.remove(key)
+        {
+            inner.current.insert(*key, v);
+        }
+    }
+
+    /// Stores a result in the current generation.
+    pub fn store(&self, key: &[u8; 32], values: std::sync::Arc<[Value]>) {
+        if let Ok(mut inner) = self.inner.lock() {
+            inner.current.insert(*key, values);
+        }
+    }
+
+    /// Ends a generation: entries neither stored nor loaded since the last call are dropped.
+    pub fn end_generation(&self) {
+        if let Ok(mut inner) = self.inner.lock() {
+            inner.previous = std::mem::take(&mut inner.current);
+        }
+    }
+
+    /// Entries held (both generations).
+    pub fn len(&self) -> usize {
+        self.inner
+            .lock()
+            .map_or(0, |i| i.current.len() + i.previous.len())
+    }
+
+    /// Whether no entry is held.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}

@@ -101,6 +101,8 @@ pub enum Code {
     BadOverride,
     /// A plugin listed in the graph could not be loaded, or plugins are disabled.
     Plugin,
+    /// A malformed `animation` section or track.
+    Animation,
 }
 
 impl Code {
@@ -129,6 +131,7 @@ impl Code {
             Code::UnknownGraphOutput => "ocellus::unknown_output_name",
             Code::BadOverride => "ocellus::bad_override",
             Code::Plugin => "ocellus::plugin",
+            Code::Animation => "ocellus::animation",
         }
     }
 }

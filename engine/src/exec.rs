@@ -26,7 +26,7 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
-use crate::cache::DiskCache;
+use crate::cache::{DiskCache, MemoryCache};
 use crate::diag::suggest;
 use crate::graph::{EdgeSource, Graph, InputEdge, Node, Tap};
 use crate::op::{Inputs, OpError, RunContext};
@@ -53,6 +53,29 @@ pub struct RunOptions {
     pub cache_dir: Option<PathBuf>,
     /// Called as nodes finish.
     pub progress: Option<ProgressFn>,
+    /// In-memory results shared between runs (the frames of an animation); checked before
+    /// the disk cache.
+    pub memory_cache: Option<Arc<MemoryCache>>,
+}
+
+/// The caches a run reads and fills.
+#[derive(Clone, Copy)]
+struct Caches<'a> {
+    disk: Option<&'a DiskCache>,
+    memory: Option<&'a MemoryCache>,
+}
+
+impl Caches<'_> {
+    fn load(&self, key: &Key, node: &Node) -> Option<Arc<[Value]>> {
+        if let Some(values) = self.memory.and_then(|m| m.load(key, &node.output_types)) {
+            return Some(values);
+        }
+        let values: Arc<[Value]> = self.disk?.load(key, &node.output_types)?.into();
+        if let Some(memory) = self.memory {
+            memory.store(key, values.clone());
+        }
+        Some(values)
+    }
 }
 
 /// Errors that stop a run before it starts.
@@ -226,21 +249,18 @@ pub fn run(graph: &Graph, options: &RunOptions) -> Result<RunReport, RunError> {
         None => None,
     };
     let start = Instant::now();
-    let plan = plan(graph, &options.outputs, cache.as_ref())?;
-    let mut report = pool.install(|| {
-        execute(
-            graph,
-            &plan,
-            cache.as_ref(),
-            threads,
-            options.progress.as_ref(),
-        )
-    });
+    let caches = Caches {
+        disk: cache.as_ref(),
+        memory: options.memory_cache.as_deref(),
+    };
+    let plan = plan(graph, &options.outputs, caches)?;
+    let mut report =
+        pool.install(|| execute(graph, &plan, caches, threads, options.progress.as_ref()));
     report.elapsed = start.elapsed();
     Ok(report)
 }
 
-fn plan(graph: &Graph, selected: &[String], cache: Option<&DiskCache>) -> Result<Plan, RunError> {
+fn plan(graph: &Graph, selected: &[String], caches: Caches<'_>) -> Result<Plan, RunError> {
     let n = graph.nodes.len();
     // Requested outputs and roots.
     let mut requested = Vec::new();
@@ -321,6 +341,12 @@ fn plan(graph: &Graph, selected: &[String], cache: Option<&DiskCache>) -> Result
         }
     }
 
+    if let Some(memory) = caches.memory {
+        for key in keys.iter().flatten() {
+            memory.touch(key);
+        }
+    }
+
     // Walk demand again, stopping at cached results.
     let mut run = vec![false; n];
     let mut loaded: HashMap<usize, Arc<[Value]>> = HashMap::new();
@@ -332,10 +358,10 @@ fn plan(graph: &Graph, selected: &[String], cache: Option<&DiskCache>) -> Result
             continue;
         }
         let node = &graph.nodes[c];
-        if let (Some(cache), Some(key), false) = (cache, keys[c], node.info.side_effects)
-            && let Some(values) = cache.load(&key, &node.output_types)
+        if let (Some(key), false) = (keys[c], node.info.side_effects)
+            && let Some(values) = caches.load(&key, node)
         {
-            loaded.insert(c, values.into());
+            loaded.insert(c, values);
             continue;
         }
         run[c] = true;
@@ -427,7 +453,7 @@ fn node_key(node: &Node, fingerprint: &[u8], keys: &[Option<Key>]) -> Option<Key
 struct State<'a> {
     graph: &'a Graph,
     plan: &'a Plan,
-    cache: Option<&'a DiskCache>,
+    caches: Caches<'a>,
     threads: usize,
     /// Outputs of each canonical node while alive.
     results: Vec<Mutex<Option<Arc<[Value]>>>>,
@@ -455,7 +481,7 @@ struct State<'a> {
 fn execute(
     graph: &Graph,
     plan: &Plan,
-    cache: Option<&DiskCache>,
+    caches: Caches<'_>,
     threads: usize,
     progress: Option<&ProgressFn>,
 ) -> RunReport {
@@ -489,7 +515,7 @@ fn execute(
     let state = State {
         graph,
         plan,
-        cache,
+        caches,
         threads,
         results: (0..n)
             .map(|i| Mutex::new(plan.loaded.get(&i).cloned()))
@@ -660,9 +686,18 @@ fn run_task<'s>(scope: &rayon::Scope<'s>, state: &'s State<'s>, i: usize) {
         match outcome {
             Ok(values) => {
                 let values: Arc<[Value]> = values.into();
-                if let (Some(cache), Some(key), false) =
-                    (state.cache, state.plan.keys[i], node.info.side_effects)
-                    && let Err(e) = cache.store(&key, &values)
+                if let (Some(memory), Some(key), false) = (
+                    state.caches.memory,
+                    state.plan.keys[i],
+                    node.info.side_effects,
+                ) {
+                    memory.store(&key, values.clone());
+                }
+                if let (Some(cache), Some(key), false) = (
+                    state.caches.disk,
+                    state.plan.keys[i],
+                    node.info.side_effects,
+                ) && let Err(e) = cache.store(&key, &values)
                     && let Ok(mut w) = state.warnings.lock()
                 {
                     w.push(format!(

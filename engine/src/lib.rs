@@ -12,6 +12,7 @@
 pub mod buffer;
 pub mod cache;
 pub mod codec;
+pub mod curves;
 pub mod diag;
 pub mod emit;
 pub mod exec;
@@ -24,9 +25,11 @@ pub mod params;
 pub mod plugin;
 pub mod resolve;
 pub mod ron_syntax;
+pub mod sequence_write;
 pub mod spec;
 pub mod summary;
 pub mod testing;
+pub mod timeline;
 pub mod types;
 pub mod value;
 

@@ -849,6 +849,19 @@ impl Resolver<'_> {
             );
         }
 
+        if let Some(section) = &sub_spec.animation {
+            self.diags.push(
+                Diagnostic::at(
+                    Code::Animation,
+                    &sub_source,
+                    crate::spec::head_span(section),
+                    format!("subgraph `{}` has an `animation` section", path.display()),
+                )
+                .label("only the top-level graph has a timeline")
+                .help("move the tracks to the top-level graph's `animation`, naming `sub/inner.param`"),
+            );
+        }
+
         // Bind the subgraph's declared inputs.
         let mut bound: HashMap<String, Source> = HashMap::new();
         let mut ok = true;

@@ -45,6 +45,9 @@ pub struct GraphSpec {
     pub outputs: Vec<(Name, Name)>,
     /// Plugin libraries to load before resolving operators, relative to the file's folder.
     pub plugins: Vec<Name>,
+    /// The `animation` section as written (frames, rate, parameter tracks), read by
+    /// [`crate::timeline`]; only a top-level graph may have one.
+    pub animation: Option<Spanned<RonValue>>,
     /// Span of the whole document.
     pub span: Span,
 }
@@ -116,13 +119,14 @@ impl InputRef {
     }
 }
 
-const GRAPH_FIELDS: [&str; 6] = [
+const GRAPH_FIELDS: [&str; 7] = [
     "name",
     "description",
     "inputs",
     "nodes",
     "outputs",
     "plugins",
+    "animation",
 ];
 const NODE_FIELDS: [&str; 3] = ["op", "inputs", "params"];
 
@@ -141,6 +145,7 @@ pub fn graph_from_ron(
         nodes: Vec::new(),
         outputs: Vec::new(),
         plugins: Vec::new(),
+        animation: None,
         span: doc.span,
     };
     let mut saw_nodes = false;
@@ -151,6 +156,7 @@ pub fn graph_from_ron(
             "inputs" => spec.inputs = string_map(source, value, "`inputs`", diags),
             "outputs" => spec.outputs = string_map(source, value, "`outputs`", diags),
             "plugins" => spec.plugins = string_list(source, value, "`plugins`", diags),
+            "animation" => spec.animation = Some(value.clone()),
             "nodes" => {
                 saw_nodes = true;
                 spec.nodes = nodes(source, value, diags);
@@ -169,7 +175,7 @@ pub fn graph_from_ron(
 }
 
 /// The span of a value's first token (for errors about the value as a whole).
-fn head_span(v: &Spanned<RonValue>) -> Span {
+pub(crate) fn head_span(v: &Spanned<RonValue>) -> Span {
     match &v.value {
         RonValue::Struct { name: Some(n), .. } | RonValue::Tuple { name: Some(n), .. } => n.span,
         _ => Span::new(
@@ -179,7 +185,7 @@ fn head_span(v: &Spanned<RonValue>) -> Span {
     }
 }
 
-fn unknown_field(
+pub(crate) fn unknown_field(
     source: &Arc<SourceFile>,
     key: &Name,
     name: &str,
@@ -209,7 +215,7 @@ fn list(names: &[&str]) -> String {
 }
 
 /// Fields of a struct value (`Name(...)` with the expected name, or `(...)`); `()` has none.
-fn struct_fields<'a>(
+pub(crate) fn struct_fields<'a>(
     source: &Arc<SourceFile>,
     v: &'a Spanned<RonValue>,
     expected_name: &str,
