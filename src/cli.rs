@@ -209,8 +209,16 @@ fn load(
 fn check(registry: &mut Registry, path: &Path, set: &[String], plugins: Plugins) -> ExitCode {
     match load(registry, path, set, plugins) {
         Ok(graph) => {
+            let frames = match crate::animation::timeline(registry, path, set) {
+                Ok(Some(a)) => format!(", {} frames at {} fps", a.frames, a.fps),
+                Ok(None) => String::new(),
+                Err(diags) => {
+                    print_diagnostics(&diags, path);
+                    return ExitCode::from(EXIT_INVALID);
+                }
+            };
             println!(
-                "{}: ok — graph `{}`, {} nodes, {} outputs",
+                "{}: ok — graph `{}`, {} nodes, {} outputs{frames}",
                 path.display(),
                 graph.name,
                 graph.nodes.len(),
@@ -227,6 +235,26 @@ fn snapshot(registry: &mut Registry, path: &Path, threads: usize, plugins: Plugi
         Ok(g) => g,
         Err(code) => return code,
     };
+    match crate::animation::timeline(registry, path, &[]) {
+        Ok(Some(_)) => {
+            // Each output as a list over the frames.
+            return match ocellus_engine::testing::run_animated_graph(registry, path, threads, &[]) {
+                Ok(outputs) => {
+                    print!("{}", ocellus_engine::summary::summarize_outputs(&outputs));
+                    ExitCode::SUCCESS
+                }
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    ExitCode::from(EXIT_FAILED)
+                }
+            };
+        }
+        Ok(None) => {}
+        Err(diags) => {
+            print_diagnostics(&diags, path);
+            return ExitCode::from(EXIT_INVALID);
+        }
+    }
     let options = RunOptions {
         threads,
         ..RunOptions::default()
@@ -270,6 +298,16 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
     } else {
         args.threads
     };
+    match crate::animation::timeline(registry, &args.graph, &args.set) {
+        Ok(Some(animated)) => {
+            return crate::animation::run_animated(registry, args, &graph, &animated, threads);
+        }
+        Ok(None) => {}
+        Err(diags) => {
+            print_diagnostics(&diags, &args.graph);
+            return ExitCode::from(EXIT_INVALID);
+        }
+    }
     let mut reports = Vec::with_capacity(args.repeat as usize);
     for _ in 0..args.repeat {
         let progress = Progress::start();

@@ -1,5 +1,6 @@
 //! `ocellus`: run, check and inspect Ocellus graphs.
 
+mod animation;
 mod cli;
 mod ops;
 mod profile;

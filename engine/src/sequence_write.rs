@@ -264,6 +264,146 @@ impl AnimationWriter {
     }
 }
 
+/// Writes the outputs of an animation's frames into a folder (`ocellus run G.ron --emit DIR` on
+/// an animated graph). The layout is a contract, like [`crate::emit`]'s:
+///
+/// | output | files |
+/// |--------|-------|
+/// | any | `NAME/F` per frame, `F` the frame's position zero-padded to the width of the last one (`00` … `47`), each written as [`crate::emit::emit_value`] writes it |
+/// | Image | also `NAME.gif` and/or `NAME.apng` (the output's `encode` entry; GIF by default) |
+/// | Metrics | also `NAME.csv`: a header `frame,time_s,KEY…` (keys sorted, over all frames) and one row per frame; a key a frame lacks is an empty cell; numbers in shortest round-trip form, `NaN`/`inf`/`-inf` for non-finite ones |
+///
+/// A frame whose output failed is skipped in that output's files.
+pub struct FrameEmitter {
+    dir: PathBuf,
+    digits: usize,
+    fps: f64,
+    encodings: std::collections::BTreeMap<String, Vec<Encoding>>,
+    writers: std::collections::BTreeMap<String, Vec<AnimationWriter>>,
+    tables: std::collections::BTreeMap<String, Vec<(i64, f64, crate::value::Metrics)>>,
+    written: Vec<PathBuf>,
+}
+
+impl FrameEmitter {
+    /// An emitter for `animated`'s frames into `dir`.
+    pub fn new(dir: &Path, animated: &crate::timeline::Animated) -> FrameEmitter {
+        FrameEmitter {
+            dir: dir.to_path_buf(),
+            digits: animated.frames.saturating_sub(1).to_string().len(),
+            fps: animated.fps,
+            encodings: animated.encode.clone(),
+            writers: std::collections::BTreeMap::new(),
+            tables: std::collections::BTreeMap::new(),
+            written: Vec::new(),
+        }
+    }
+
+    /// Writes one frame's outputs.
+    pub fn frame(&mut self, run: &crate::timeline::FrameRun) -> Result<(), String> {
+        let mut failed = Vec::new();
+        for (name, value) in &run.report.outputs {
+            let element = format!("{:0width$}", run.index, width = self.digits);
+            match crate::emit::emit_value(&self.dir.join(name), &element, value) {
+                Ok(files) => self.written.extend(files),
+                Err(e) => failed.push(format!("output `{name}`, frame {}: {e}", run.frame)),
+            }
+            match value {
+                crate::value::Value::Image(image) => {
+                    let writers = self.writers.entry(name.clone()).or_insert_with(|| {
+                        self.encodings
+                            .get(name)
+                            .cloned()
+                            .unwrap_or_else(|| vec![Encoding::Gif])
+                            .into_iter()
+                            .map(|e| {
+                                let path = self.dir.join(format!("{name}.{}", e.extension()));
+                                AnimationWriter::new(&path, e, self.fps)
+                            })
+                            .collect()
+                    });
+                    for w in writers {
+                        if let Err(e) = w.push(image) {
+                            failed.push(e.to_string());
+                        }
+                    }
+                }
+                crate::value::Value::Metrics(m) => self
+                    .tables
+                    .entry(name.clone())
+                    .or_default()
+                    .push((run.frame, run.time, (**m).clone())),
+                _ => {}
+            }
+        }
+        if failed.is_empty() {
+            Ok(())
+        } else {
+            Err(failed.join("\n"))
+        }
+    }
+
+    /// Finishes the animations and tables; returns every file written.
+    pub fn finish(mut self) -> Result<Vec<PathBuf>, String> {
+        let mut failed = Vec::new();
+        for writer in std::mem::take(&mut self.writers).into_values().flatten() {
+            match writer.finish() {
+                Ok(path) => self.written.push(path),
+                Err(e) => failed.push(e.to_string()),
+            }
+        }
+        for (name, rows) in std::mem::take(&mut self.tables) {
+            let path = self.dir.join(format!("{name}.csv"));
+            match write_atomic(&path, metrics_csv(&rows).as_bytes()) {
+                Ok(()) => self.written.push(path),
+                Err(e) => failed.push(format!("{}: {e}", path.display())),
+            }
+        }
+        if failed.is_empty() {
+            Ok(self.written)
+        } else {
+            Err(failed.join("\n"))
+        }
+    }
+}
+
+fn csv_number(x: f64) -> String {
+    if x.is_nan() {
+        "NaN".into()
+    } else if x.is_infinite() {
+        if x > 0.0 { "inf".into() } else { "-inf".into() }
+    } else {
+        format!("{x}")
+    }
+}
+
+/// The CSV text of per-frame metrics (see [`FrameEmitter`]).
+pub fn metrics_csv(rows: &[(i64, f64, crate::value::Metrics)]) -> String {
+    let keys: std::collections::BTreeSet<&String> =
+        rows.iter().flat_map(|(_, _, m)| m.keys()).collect();
+    let mut out = String::from("frame,time_s");
+    for k in &keys {
+        out.push(',');
+        // Metric names are identifiers; quote any that are not, per RFC 4180.
+        if k.contains([',', '"', '\n']) {
+            out.push_str(&format!("\"{}\"", k.replace('"', "\"\"")));
+        } else {
+            out.push_str(k);
+        }
+    }
+    out.push('\n');
+    for (frame, time, m) in rows {
+        out.push_str(&format!("{frame},{}", csv_number(*time)));
+        for k in &keys {
+            out.push(',');
+            if let Some(v) = m.get(*k) {
+                out.push_str(&csv_number(*v));
+            }
+        }
+        out.push('\n');
+    }
+    out
+}
+
 /// GIF frame delay in hundredths of a second (at least 1).
 pub fn gif_delay_cs(fps: f64) -> u16 {
     let cs = (100.0 / fps).round();

@@ -44,3 +44,62 @@ pub fn snapshot_graph(registry: &Registry, path: impl AsRef<Path>) -> Result<Str
     let report = run_graph(registry, path, 0, &[])?;
     Ok(summarize_outputs(&report.outputs))
 }
+
+/// Runs an animated graph file (one with an `animation` section) over all its frames and
+/// returns each output as a list over frames, in output order — what a snapshot of an
+/// animation shows. A graph without a timeline runs once, as [`run_graph`].
+pub fn run_animated_graph(
+    registry: &Registry,
+    path: impl AsRef<Path>,
+    threads: usize,
+    overrides: &[&str],
+) -> Result<Vec<(String, crate::value::Value)>, String> {
+    let overrides = overrides
+        .iter()
+        .map(|o| Override::parse(o).map_err(|d| d.to_string()))
+        .collect::<Result<Vec<_>, _>>()?;
+    let (graph, animated) =
+        crate::timeline::load_animated_file(registry, path.as_ref(), &overrides)
+            .map_err(|d| d.to_string())?;
+    let options = RunOptions {
+        threads,
+        ..RunOptions::default()
+    };
+    let Some(animated) = animated else {
+        let report = run(&graph, &options).map_err(|e| e.to_string())?;
+        if !report.failures.is_empty() {
+            let lines: Vec<String> = report.failures.iter().map(ToString::to_string).collect();
+            return Err(lines.join("\n"));
+        }
+        return Ok(report.outputs);
+    };
+    let mut columns: Vec<(String, crate::types::PortType, Vec<crate::value::Value>)> = graph
+        .outputs
+        .iter()
+        .filter(|o| options.outputs.is_empty() || options.outputs.contains(&o.name))
+        .map(|o| (o.name.clone(), o.ty.clone(), Vec::new()))
+        .collect();
+    crate::timeline::run_timeline(registry, &animated, &options, |frame| {
+        if !frame.report.failures.is_empty() {
+            let lines: Vec<String> = frame
+                .report
+                .failures
+                .iter()
+                .map(ToString::to_string)
+                .collect();
+            return Err(lines.join("\n"));
+        }
+        for (name, _, values) in &mut columns {
+            match frame.report.output(name) {
+                Some(v) => values.push(v.clone()),
+                None => return Err(format!("output `{name}` missing")),
+            }
+        }
+        Ok(())
+    })
+    .map_err(|e| e.to_string())?;
+    Ok(columns
+        .into_iter()
+        .map(|(name, ty, values)| (name, crate::value::Value::list(ty, values)))
+        .collect())
+}

@@ -4,6 +4,7 @@
 //! are plain functions with their own tests; each operator wrapper around one is thin.
 
 pub mod analyze;
+pub mod animate;
 pub mod capture;
 pub mod describe;
 pub mod detect;
@@ -24,6 +25,10 @@ use ocellus_engine::op::{Registry, RegistryError};
 /// Registers every built-in operator.
 pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<capture::pattern::Pattern>()?;
+    registry.register::<animate::cloth::Cloth>()?;
+    registry.register::<animate::pick::Pick>()?;
+    registry.register::<animate::chain::Skin>()?;
+    registry.register::<animate::chain::Ik>()?;
     registry.register::<capture::sequence::Sequence>()?;
     registry.register::<capture::moving::MovingShapes>()?;
     registry.register::<capture::moving::Select>()?;

@@ -41,6 +41,9 @@ params! {
         /// Bounding-sphere radius over half the narrower field of view (≥ 1; 1 touches the
         /// image border). Default 1.15.
         margin: f64 = 1.15 => [min = 1.0, max = 100.0],
+        /// Camera distance from the target, scene units, instead of the framing distance (a
+        /// fixed camera for a mesh that changes from frame to frame). Default none.
+        distance: Option<f64> = None => [above = 0.0, unit = "scene units"],
         /// Surface albedo, linear RGB in [0, 1]. Default (0.8, 0.8, 0.8).
         albedo: [f64; 3] = [0.8, 0.8, 0.8],
         /// Key light azimuth relative to the camera's, degrees. Default −35 (to the left).
@@ -135,7 +138,7 @@ pub fn framing_camera(
     } else {
         1.0_f64.max(target.iter().fold(0.0, |m: f64, c| m.max(c.abs())) * 1e-6)
     };
-    let distance = p.margin * radius / half.sin();
+    let distance = p.distance.unwrap_or(p.margin * radius / half.sin());
     let towards_eye = orbit_direction(&frame, p.azimuth_deg, p.elevation_deg);
     let eye = [0, 1, 2].map(|k| target[k] + distance * towards_eye[k]);
     // Straight up or down: the reference axis serves as the image's up.
@@ -186,6 +189,12 @@ Lights: a directional key light from azimuth `azimuth_deg + light_azimuth_deg` a
 `light_elevation_deg` with irradiance `light_irradiance` (W·m⁻²), and a constant environment of
 radiance `ambient` (the rasterizer's ambient term, the tracer's sky).
 
+With a `scene` input, the mesh joins that scene: its objects, materials and lights are kept
+(the key and ambient lights are added to them), its cameras are replaced by the orbit camera,
+which still frames the mesh alone. `distance` fixes the camera distance instead of the framing
+one, so a mesh that changes from frame to frame is seen by a camera that moves only when its
+parameters do.
+
 Errors: a mesh with no vertices or non-finite ones, a zero `up`, a field of view outside
 (0, 180).
 
@@ -195,11 +204,15 @@ Example:
 "#;
 
     fn inputs() -> Vec<PortSpec> {
-        vec![PortSpec::new(
-            "mesh",
-            PortType::Mesh,
-            "The triangle mesh to show.",
-        )]
+        vec![
+            PortSpec::new("mesh", PortType::Mesh, "The triangle mesh to show."),
+            PortSpec::new(
+                "scene",
+                PortType::Scene,
+                "A stage around the mesh: its objects, materials and lights are kept, its cameras replaced.",
+            )
+            .optional(),
+        ]
     }
 
     fn outputs() -> Vec<PortSpec> {
@@ -254,29 +267,46 @@ impl Operator for MeshScene {
         let (camera, light_direction) =
             framing_camera(&mesh.positions, p).map_err(|e| OpError::input("mesh", e))?;
         let albedo = p.albedo.map(|a| a as f32);
+        let stage = match inputs.get("scene") {
+            Some(Value::Scene(s)) => Some(s),
+            Some(other) => {
+                return Err(OpError::input(
+                    "scene",
+                    format!("expected Scene, got {}", other.port_type()),
+                ));
+            }
+            None => None,
+        };
+        let (mut materials, mut objects, mut lights) = match stage {
+            Some(s) => (s.materials.clone(), s.objects.clone(), s.lights.clone()),
+            None => (Vec::new(), Vec::new(), Vec::new()),
+        };
+        let material = u32::try_from(materials.len())
+            .map_err(|_| OpError::input("scene", "too many materials"))?;
+        materials.push(Material {
+            name: "mesh".into(),
+            albedo,
+            ..Material::default()
+        });
+        objects.push(SceneObject {
+            name: "mesh".into(),
+            shape: Shape::Mesh(Arc::clone(mesh)),
+            world_from_object: Pose::IDENTITY,
+            scale: 1.0,
+            material,
+        });
+        lights.push(Light::Directional {
+            direction: light_direction,
+            irradiance: [p.light_irradiance as f32; 3],
+        });
+        lights.push(Light::Environment {
+            radiance: [p.ambient as f32; 3],
+            map: None,
+        });
         let scene = Scene {
-            materials: vec![Material {
-                name: "mesh".into(),
-                albedo,
-                ..Material::default()
-            }],
-            objects: vec![SceneObject {
-                name: "mesh".into(),
-                shape: Shape::Mesh(Arc::clone(mesh)),
-                world_from_object: Pose::IDENTITY,
-                scale: 1.0,
-                material: 0,
-            }],
-            lights: vec![
-                Light::Directional {
-                    direction: light_direction,
-                    irradiance: [p.light_irradiance as f32; 3],
-                },
-                Light::Environment {
-                    radiance: [p.ambient as f32; 3],
-                    map: None,
-                },
-            ],
+            materials,
+            objects,
+            lights,
             cameras: vec![camera],
         };
         Ok(Outputs::new().with("scene", Value::Scene(Arc::new(scene))))
