@@ -66,11 +66,25 @@ pub fn run_animated(
             if frame.index + 1 == animated.frames {
                 last_outputs = Some(frame.report.outputs.clone());
             }
+            let failed = !frame.report.failures.is_empty();
             frame_reports.push(frame.report);
-            Ok(())
+            // A node that failed in this frame fails in the next ones too (or it would have
+            // been the same node): stop at the first failing frame.
+            if failed {
+                Err("stopped".into())
+            } else {
+                Ok(())
+            }
         });
         let report = match result {
             Ok(r) => r,
+            Err(_) if !failures.is_empty() => {
+                for f in &failures {
+                    eprintln!("error: {f}");
+                }
+                eprintln!("error: the animation stopped at the first frame that failed");
+                return ExitCode::from(EXIT_FAILED);
+            }
             Err(e) => {
                 eprintln!("error: {e}");
                 return ExitCode::from(EXIT_INVALID);

@@ -97,6 +97,10 @@ pub struct RunArgs {
     /// Write per-node timings as JSON.
     #[arg(long, value_name = "FILE.json")]
     pub profile: Option<PathBuf>,
+    /// Of an animated graph, run only frame N (its number: the animation's `start` + i) as one
+    /// ordinary run.
+    #[arg(long, value_name = "N")]
+    pub frame: Option<i64>,
     /// Persist node results here and reuse them across runs.
     #[arg(long, value_name = "DIR")]
     pub cache: Option<PathBuf>,
@@ -298,16 +302,44 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
     } else {
         args.threads
     };
-    match crate::animation::timeline(registry, &args.graph, &args.set) {
-        Ok(Some(animated)) => {
+    let graph = match (
+        crate::animation::timeline(registry, &args.graph, &args.set),
+        args.frame,
+    ) {
+        (Ok(Some(animated)), None) => {
             return crate::animation::run_animated(registry, args, &graph, &animated, threads);
         }
-        Ok(None) => {}
-        Err(diags) => {
+        (Ok(Some(animated)), Some(frame)) => {
+            let first = animated.frame_number(0);
+            let last = animated.frame_number(animated.frames - 1);
+            let Some(index) = usize::try_from(frame - first)
+                .ok()
+                .filter(|_| (first..=last).contains(&frame))
+            else {
+                eprintln!("error: --frame {frame}: the animation has frames {first} to {last}");
+                return ExitCode::from(EXIT_INVALID);
+            };
+            match animated.graph_at(registry, index) {
+                Ok(g) => g,
+                Err(diags) => {
+                    print_diagnostics(&diags, &args.graph);
+                    return ExitCode::from(EXIT_INVALID);
+                }
+            }
+        }
+        (Ok(None), Some(frame)) => {
+            eprintln!(
+                "error: --frame {frame}: `{}` has no `animation` section",
+                args.graph.display()
+            );
+            return ExitCode::from(EXIT_INVALID);
+        }
+        (Ok(None), None) => graph,
+        (Err(diags), _) => {
             print_diagnostics(&diags, &args.graph);
             return ExitCode::from(EXIT_INVALID);
         }
-    }
+    };
     let mut reports = Vec::with_capacity(args.repeat as usize);
     for _ in 0..args.repeat {
         let progress = Progress::start();

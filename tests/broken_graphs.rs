@@ -202,6 +202,19 @@ const CORPUS: &[(&str, &str, &[&str])] = &[
         "sub/with_plugin.ron:2:15",
         &["lists plugin `libsomething.so`", "top-level graph"],
     ),
+    (
+        "44_animation_unknown_param.ron",
+        "5:39",
+        &[
+            "track `blur.sigam`: `filter.gaussian` has no parameter `sigam`",
+            "did you mean `sigma`?",
+        ],
+    ),
+    (
+        "45_animation_key_out_of_range.ron",
+        "6:62",
+        &["at frame 7 (0.700 s): parameter out of range: `sigma` must be ≥ 0"],
+    ),
 ];
 
 #[test]

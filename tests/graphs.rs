@@ -9,6 +9,7 @@ use common::{example_graphs, files_below, ocellus, root, stderr, temp_dir};
 
 /// Graphs with a snapshot test below; a new graph must be added here.
 const SNAPSHOTTED: &[&str] = &[
+    "animate.ron",
     "bal.ron",
     "bundle_adjust.ron",
     "calibrate.ron",
@@ -33,14 +34,15 @@ const SNAPSHOTTED: &[&str] = &[
 
 fn summary(graph: &str, threads: usize) -> String {
     let registry = ocellus_nodes::builtin_registry().unwrap();
-    let report = ocellus_engine::testing::run_graph(
+    // Animated graphs give each output as a list over their frames; the others run once.
+    let outputs = ocellus_engine::testing::run_animated_graph(
         &registry,
         root().join("graphs").join(graph),
         threads,
         &[],
     )
     .unwrap_or_else(|e| panic!("{graph}: {e}"));
-    ocellus_engine::summary::summarize_outputs(&report.outputs)
+    ocellus_engine::summary::summarize_outputs(&outputs)
 }
 
 fn check_graph(graph: &str) {
@@ -48,6 +50,11 @@ fn check_graph(graph: &str) {
     let two = summary(graph, 2);
     assert_eq!(one, two, "{graph}: summary differs between 1 and 2 threads");
     insta::assert_snapshot!(graph.trim_end_matches(".ron"), one);
+}
+
+#[test]
+fn animate() {
+    check_graph("animate.ron");
 }
 
 #[test]

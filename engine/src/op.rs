@@ -259,6 +259,11 @@ impl Outputs {
         }
     }
 
+    /// Output `name`, if set.
+    pub fn get(&self, name: &str) -> Option<&Value> {
+        self.values.iter().find(|(n, _)| n == name).map(|(_, v)| v)
+    }
+
     /// Takes output `name`.
     pub fn take(&mut self, name: &str) -> Option<Value> {
         let index = self.values.iter().position(|(n, _)| n == name)?;

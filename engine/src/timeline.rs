@@ -22,8 +22,9 @@
 //! )
 //! ```
 //!
-//! A track drives one parameter of type float, int (rounded to nearest), or a fixed-length
-//! float list (one number per component); keys are `(time_s, value)`. Interpolations are those
+//! A track drives one parameter of type float, int (rounded to nearest), or a float list (one
+//! number per component; a list of free length takes the keys' length); keys are
+//! `(time_s, value)`. Interpolations are those
 //! of [`crate::curves`] (`step`, `linear`, `hermite` with optional `tangents`, `catmull_rom`,
 //! `centripetal`, `natural_cubic`, `bezier`, `bspline`, `slerp`, `squad` for quaternions).
 //! Sampled values are checked against the parameter's range like a `--set` value, with the
@@ -214,7 +215,11 @@ pub fn load_animated(
     let mut frame_diags = Diagnostics::default();
     for i in 0..animated.frames {
         if let Err(d) = load_source(registry, source, &animated.overrides_at(i)) {
-            frame_diags.0.extend(d.0);
+            let (frame, time) = (animated.frame_number(i), animated.time(i));
+            frame_diags.0.extend(d.0.into_iter().map(|mut d| {
+                d.message = format!("at frame {frame} ({time:.3} s): {}", d.message);
+                d
+            }));
             break;
         }
     }
@@ -300,15 +305,13 @@ fn ron_value(ty: &ParamType, numbers: &[f64]) -> RonValue {
     }
 }
 
-/// Numbers per value of an animatable parameter type; `None` when it cannot be animated.
-fn animatable_width(ty: &ParamType) -> Option<usize> {
+/// Numbers per value of an animatable parameter type: `Some(Some(n))` fixed, `Some(None)` any
+/// (a number list of free length: the keys set it); `None` when it cannot be animated.
+fn animatable_width(ty: &ParamType) -> Option<Option<usize>> {
     match ty {
-        ParamType::Float | ParamType::Int => Some(1),
+        ParamType::Float | ParamType::Int => Some(Some(1)),
         ParamType::Optional(inner) => animatable_width(inner),
-        ParamType::List {
-            element,
-            len: Some(len),
-        } if matches!(**element, ParamType::Float | ParamType::Int) => Some(*len),
+        ParamType::List { element, len } if matches!(**element, ParamType::Float) => Some(*len),
         _ => None,
     }
 }
@@ -631,18 +634,18 @@ fn check_track(
                 ),
                 "not a number",
             )
-            .help("tracks drive float and int parameters and fixed-length number lists"),
+            .help("tracks drive float and int parameters and lists of floats"),
         );
         return None;
     };
     let driver = match &track.value.value {
         RonValue::Str(s) | RonValue::Ident(s) if s == "frame" || s == "time" => {
-            if width != 1 {
+            if width != Some(1) {
                 diags.push(animation_diag(
                     source,
                     track.value.span,
                     format!(
-                        "`{s}` drives one number, but `{}.{}` holds {width}",
+                        "`{s}` drives one number, but `{}.{}` is a list",
                         track.node, track.param
                     ),
                     "one number",
@@ -693,7 +696,7 @@ fn key_numbers(v: &RonValue) -> Option<Vec<f64>> {
 fn parse_keys(
     source: &Arc<SourceFile>,
     value: &Spanned<RonValue>,
-    width: usize,
+    width: Option<usize>,
     diags: &mut Diagnostics,
 ) -> Option<Track> {
     let fields = struct_fields(source, value, "Track", "a track", diags)?;
@@ -774,6 +777,16 @@ fn parse_keys(
         ));
         return None;
     };
+    // A free-length list parameter takes the first key's length.
+    let width = width.or_else(|| {
+        items.first().and_then(|item| match &item.value {
+            RonValue::Tuple { items, .. } if items.len() == 2 => {
+                key_numbers(&items[1].value).map(|v| v.len())
+            }
+            _ => None,
+        })
+    });
+    let width = width.unwrap_or(1);
     let mut times = Vec::with_capacity(items.len());
     let mut values = Vec::with_capacity(items.len() * width);
     for item in items {

@@ -243,6 +243,7 @@ fn a_key_outside_the_parameter_range_is_a_load_error_at_the_track() {
     ));
     assert_eq!(errs.len(), 1, "{errs:#?}");
     assert!(errs[0].starts_with("anim.ron:4:60:"), "{errs:#?}");
+    assert!(errs[0].contains("at frame 2 (2.000 s)"), "{errs:#?}");
     assert!(errs[0].contains("1000"), "{errs:#?}");
 }
 

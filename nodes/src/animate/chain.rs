@@ -501,3 +501,265 @@ impl Operator for Ik {
             .with("metrics", Value::metrics(metrics)))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+
+    use ocellus_engine::op::Op;
+
+    use super::super::skinning::capped_cylinder;
+    use super::*;
+
+    fn ctx() -> RunContext {
+        RunContext {
+            node: "test".into(),
+            threads: 1,
+            element: None,
+        }
+    }
+
+    fn metric(out: &Outputs, port: &str, key: &str) -> f64 {
+        match out.get(port) {
+            Some(Value::Metrics(m)) => m[key],
+            other => panic!("{port}: {other:?}"),
+        }
+    }
+
+    fn bar() -> Mesh {
+        let (positions, triangles) = capped_cylinder(0.2, 2.0, 65, 32);
+        Mesh {
+            positions: positions.iter().map(|p| p.map(|c| c as f32)).collect(),
+            triangles,
+            normals: None,
+            uvs: None,
+            colors: None,
+            tangents: None,
+        }
+    }
+
+    fn skin(params: SkinParams, mesh: Mesh, rotations: Option<Matrix>) -> Outputs {
+        let op = Skin::new(params).unwrap();
+        let specs = Skin::inputs();
+        let values = [
+            Some(Value::Mesh(Arc::new(mesh))),
+            rotations.map(|m| Value::Matrix(Arc::new(m))),
+        ];
+        op.run(&ctx(), &Inputs::new(&specs, &values)).unwrap()
+    }
+
+    fn twist(method: SkinMethod, degrees: f64) -> f64 {
+        let params = SkinParams {
+            bone_lengths: vec![1.0, 1.0],
+            blend_width: 1.0,
+            rotations_deg: vec![0.0, 0.0, 0.0, degrees, 0.0, 0.0],
+            method,
+            ..SkinParams::default()
+        };
+        metric(&skin(params, bar(), None), "metrics", "volume_ratio")
+    }
+
+    #[test]
+    fn twist_180_collapses_linear_blend_and_keeps_dual_quaternion_volume() {
+        let lbs = twist(SkinMethod::LinearBlend, 180.0);
+        let dqs = twist(SkinMethod::DualQuaternion, 180.0);
+        println!("180° twist volume ratio: LBS {lbs:.4}, DQS {dqs:.5}");
+        assert!(lbs < 0.8, "LBS {lbs}");
+        assert!((dqs - 1.0).abs() < 0.01, "DQS {dqs}");
+        // At rest every method returns the mesh.
+        for m in [
+            SkinMethod::Rigid,
+            SkinMethod::LinearBlend,
+            SkinMethod::DualQuaternion,
+        ] {
+            assert!((twist(m, 0.0) - 1.0).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn chain_weights_partition_unity_and_follow_the_bones() {
+        let axis = Vector3::x();
+        let points: Vec<[f64; 3]> = (0..=60)
+            .map(|i| [-0.5 + i as f64 * 0.05, 0.1, 0.0])
+            .collect();
+        let w = chain_weights(&points, axis, &[1.0, 0.5, 1.0], 0.2).unwrap();
+        for (v, p) in points.iter().enumerate() {
+            let inf = w.influences(v);
+            let sum: f64 = inf.iter().map(|(_, w)| w).sum();
+            assert!((sum - 1.0).abs() < 1e-12, "{p:?}: {inf:?}");
+            // Away from the joints (at 1 and 1.5) only one bone moves the vertex.
+            let x = p[0];
+            let expected = if x < 0.9 {
+                Some(0)
+            } else if (1.1..1.4).contains(&x) {
+                Some(1)
+            } else if x > 1.6 {
+                Some(2)
+            } else {
+                None
+            };
+            if let Some(bone) = expected {
+                assert_eq!(inf, [(bone, 1.0)], "{p:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn rotations_input_replaces_the_parameter() {
+        let params = SkinParams {
+            rotations_deg: vec![0.0, 0.0, 90.0],
+            ..SkinParams::default()
+        };
+        let from_param = skin(params.clone(), bar(), None);
+        let matrix = Matrix::new(2, 3, vec![0.0, 0.0, 90.0, 0.0, 0.0, 0.0]).unwrap();
+        let from_input = skin(
+            SkinParams {
+                rotations_deg: Vec::new(),
+                ..params
+            },
+            bar(),
+            Some(matrix),
+        );
+        assert_eq!(from_param.get("mesh"), from_input.get("mesh"));
+        // A 90° turn of the root about z takes +x to +y: the far cap's centre is at (0, 2, 0).
+        let Some(Value::Mesh(m)) = from_param.get("mesh") else {
+            panic!()
+        };
+        let top = m.positions.iter().map(|p| p[1]).fold(f32::MIN, f32::max);
+        assert!((top - 2.0).abs() < 1e-5, "{top}");
+    }
+
+    #[test]
+    fn bad_rotations_are_load_errors() {
+        for r in [vec![1.0, 2.0], vec![0.0; 9], vec![f64::NAN, 0.0, 0.0]] {
+            let params = SkinParams {
+                rotations_deg: r.clone(),
+                ..SkinParams::default()
+            };
+            assert!(Skin::new(params).is_err(), "{r:?}");
+        }
+        assert!(
+            Skin::new(SkinParams {
+                bone_lengths: vec![],
+                ..SkinParams::default()
+            })
+            .is_err()
+        );
+        assert!(
+            Skin::new(SkinParams {
+                axis: [0.0; 3],
+                ..SkinParams::default()
+            })
+            .is_err()
+        );
+    }
+
+    fn ik(params: IkParams) -> Outputs {
+        let op = Ik::new(params).unwrap();
+        let specs = Ik::inputs();
+        op.run(&ctx(), &Inputs::new(&specs, &[])).unwrap()
+    }
+
+    #[test]
+    fn ik_reaches_a_reachable_target_and_reports_an_unreachable_one() {
+        for solver in [IkSolver::Ccd, IkSolver::DampedLeastSquares] {
+            let target = [0.9, 1.1, 0.4];
+            let out = ik(IkParams {
+                bone_lengths: vec![1.0, 0.8, 0.5],
+                root: [0.0, 0.0, 0.0],
+                target,
+                solver,
+                max_iterations: 2000,
+                ..IkParams::default()
+            });
+            assert_eq!(metric(&out, "metrics", "reached"), 1.0);
+            assert!(metric(&out, "metrics", "error") < 1e-4);
+            // The posed tip (last joint row) is on the target.
+            let Some(Value::Matrix(joints)) = out.get("joints") else {
+                panic!()
+            };
+            assert_eq!((joints.rows, joints.cols), (4, 3));
+            for k in 0..3 {
+                assert!((joints.get(3, k).unwrap() - target[k]).abs() < 1e-4);
+            }
+            // Bone lengths are kept.
+            for j in 0..3 {
+                let d: f64 = (0..3)
+                    .map(|k| (joints.get(j + 1, k).unwrap() - joints.get(j, k).unwrap()).powi(2))
+                    .sum::<f64>()
+                    .sqrt();
+                assert!((d - [1.0, 0.8, 0.5][j]).abs() < 1e-9);
+            }
+
+            let far = ik(IkParams {
+                bone_lengths: vec![1.0, 0.8, 0.5],
+                root: [1.0, 2.0, 3.0],
+                target: [6.0, 2.0, 3.0],
+                solver,
+                ..IkParams::default()
+            });
+            assert_eq!(metric(&far, "metrics", "reachable"), 0.0);
+            assert_eq!(metric(&far, "metrics", "reached"), 0.0);
+            assert!((metric(&far, "metrics", "error") - (5.0 - 2.3)).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn ik_rotations_drive_skin_to_the_same_pose() {
+        // The tip of a straight bar skinned by the IK rotations lands on the IK target.
+        let target = [0.6, 1.2, 0.0];
+        let out = ik(IkParams {
+            bone_lengths: vec![1.0, 1.0],
+            target,
+            hinge_axis: Some([0.0, 0.0, 1.0]),
+            ..IkParams::default()
+        });
+        assert_eq!(metric(&out, "metrics", "reached"), 1.0);
+        let Some(Value::Matrix(rotations)) = out.get("rotations") else {
+            panic!()
+        };
+        // Hinge joints about z: rotation vectors along z only.
+        for j in 0..2 {
+            assert!(rotations.get(j, 0).unwrap().abs() < 1e-9);
+            assert!(rotations.get(j, 1).unwrap().abs() < 1e-9);
+        }
+        let skinned = skin(
+            SkinParams {
+                bone_lengths: vec![1.0, 1.0],
+                blend_width: 0.0,
+                method: SkinMethod::Rigid,
+                ..SkinParams::default()
+            },
+            bar(),
+            Some(Matrix::clone(rotations)),
+        );
+        let Some(Value::Mesh(m)) = skinned.get("mesh") else {
+            panic!()
+        };
+        // The far cap's centre vertex (last in the layout) sits on the bar's axis at x = 2.
+        let tip = m.positions[m.positions.len() - 1];
+        for k in 0..3 {
+            assert!((f64::from(tip[k]) - target[k]).abs() < 1e-4, "{tip:?}");
+        }
+    }
+
+    #[test]
+    fn ik_limits_are_checked_at_load() {
+        assert!(
+            Ik::new(IkParams {
+                cone_deg: Some(30.0),
+                hinge_axis: Some([0.0, 0.0, 1.0]),
+                ..IkParams::default()
+            })
+            .is_err()
+        );
+        assert!(
+            Ik::new(IkParams {
+                hinge_axis: Some([0.0, 0.0, 1.0]),
+                hinge_range_deg: [10.0, -10.0],
+                ..IkParams::default()
+            })
+            .is_err()
+        );
+    }
+}

@@ -569,3 +569,198 @@ impl Operator for Cloth {
             .with("metrics", Value::metrics(metrics)))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+
+    use ocellus_engine::op::Op;
+    use ocellus_engine::value::{SceneObject, Shape};
+
+    use super::*;
+
+    fn ctx() -> RunContext {
+        RunContext {
+            node: "cloth".into(),
+            threads: 1,
+            element: None,
+        }
+    }
+
+    fn object(shape: Shape, translation: [f64; 3], scale: f64) -> SceneObject {
+        SceneObject {
+            name: "o".into(),
+            shape,
+            world_from_object: Pose {
+                rotation: [1.0, 0.0, 0.0, 0.0],
+                translation,
+            },
+            scale,
+            material: 0,
+        }
+    }
+
+    fn run(params: ClothParams, scene: Option<Scene>) -> Result<Outputs, OpError> {
+        let op = Cloth::new(params).map_err(OpError::failed)?;
+        let specs = Cloth::inputs();
+        let values = [scene.map(|s| Value::Scene(Arc::new(s)))];
+        op.run(&ctx(), &Inputs::new(&specs, &values))
+    }
+
+    #[test]
+    fn colliders_come_from_the_scene_with_poses_and_scales() {
+        // A unit sphere scaled by 0.3 and moved to (0.2, 0.35, 0); a finite floor at y = 0.
+        let scene = Scene {
+            objects: vec![
+                object(
+                    Shape::Sphere {
+                        center: [0.0, 0.0, 0.0],
+                        radius: 1.0,
+                    },
+                    [0.2, 0.35, 0.0],
+                    0.3,
+                ),
+                object(
+                    Shape::Plane {
+                        point: [0.0, 0.0, 0.0],
+                        normal: [0.0, 1.0, 0.0],
+                        half_extent: 2.0,
+                    },
+                    [0.0, 0.0, 0.0],
+                    1.0,
+                ),
+            ],
+            ..Scene::default()
+        };
+        let colliders = scene_colliders(&scene).unwrap();
+        assert!(matches!(colliders[0], Collider::Sphere { center, radius }
+            if center == [0.2, 0.35, 0.0] && (radius - 0.3).abs() < 1e-15));
+        assert!(matches!(colliders[1], Collider::Mesh(_)));
+        let params = ClothParams {
+            columns: 16,
+            rows: 16,
+            center: [0.2, 0.9, 0.0],
+            frames: 36,
+            fps: 24.0,
+            margin_m: 0.01,
+            ..ClothParams::default()
+        };
+        let out = run(params, Some(scene)).unwrap();
+        let Some(Value::List(frames)) = out.get("frames") else {
+            panic!()
+        };
+        assert_eq!(frames.items.len(), 36);
+        for frame in &frames.items {
+            let Value::Mesh(m) = frame else { panic!() };
+            for p in &m.positions {
+                let d = [p[0] as f64 - 0.2, p[1] as f64 - 0.35, p[2] as f64];
+                let r = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                assert!(r >= 0.3 + 0.01 - 1e-5, "inside the ball: {p:?} at {r}");
+                assert!(p[1] >= 0.01 - 1e-4, "below the floor: {p:?}");
+            }
+        }
+        // It has draped: the lowest particle is below the ball's centre.
+        let Value::Mesh(last) = &frames.items[35] else {
+            panic!()
+        };
+        let lowest = last.positions.iter().map(|p| p[1]).fold(f32::MAX, f32::min);
+        assert!(lowest < 0.35, "{lowest}");
+        let Some(Value::Matrix(energy)) = out.get("energy") else {
+            panic!()
+        };
+        assert_eq!((energy.rows, energy.cols), (36, ENERGY_COLUMNS.len()));
+        assert_eq!(energy.get(0, 1), Some(0.0)); // at rest at frame 0
+        assert!((energy.get(35, 0).unwrap() - 35.0 / 24.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn quadrics_are_refused_and_divergence_fails_the_node() {
+        let scene = Scene {
+            objects: vec![object(
+                Shape::Quadric {
+                    coefficients: [1.0; 10],
+                    min: [-1.0; 3],
+                    max: [1.0; 3],
+                },
+                [0.0; 3],
+                1.0,
+            )],
+            ..Scene::default()
+        };
+        let e = run(ClothParams::default(), Some(scene))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("quadric"), "{e}");
+        // Explicit Euler on a cloth that hits a ball: every spring mode grows by
+        // √(1 + h²ω²) per step, so it blows up, and the node says where.
+        let ball = Scene {
+            objects: vec![object(
+                Shape::Sphere {
+                    center: [0.0, 0.35, 0.0],
+                    radius: 0.3,
+                },
+                [0.0; 3],
+                1.0,
+            )],
+            ..Scene::default()
+        };
+        let failed = run(
+            ClothParams {
+                integrator: IntegratorName::ExplicitEuler,
+                frames: 48,
+                ..ClothParams::default()
+            },
+            Some(ball.clone()),
+        );
+        let Err(e) = failed else {
+            panic!("explicit Euler did not diverge")
+        };
+        let e = e.to_string();
+        assert!(
+            e.contains("explicit_euler simulation diverged at frame"),
+            "{e}"
+        );
+        // Implicit Euler takes the same steps and stays stable.
+        assert!(
+            run(
+                ClothParams {
+                    frames: 48,
+                    ..ClothParams::default()
+                },
+                Some(ball)
+            )
+            .is_ok()
+        );
+    }
+
+    #[test]
+    fn a_free_cloth_falls_as_gravity_says() {
+        // No colliders, no drag, no pins: the centre of mass falls g t²/2 (implicit Euler,
+        // fine steps: to 1 %), the cloth keeps its shape.
+        let out = run(
+            ClothParams {
+                columns: 4,
+                rows: 4,
+                drag: 0.0,
+                frames: 25,
+                fps: 24.0,
+                substeps: 20,
+                ..ClothParams::default()
+            },
+            None,
+        )
+        .unwrap();
+        let Some(Value::List(frames)) = out.get("frames") else {
+            panic!()
+        };
+        let Value::Mesh(last) = &frames.items[24] else {
+            panic!()
+        };
+        let mean_y: f64 = last.positions.iter().map(|p| f64::from(p[1])).sum::<f64>() / 16.0;
+        let expected = 1.0 - 0.5 * 9.81 * 1.0;
+        assert!(
+            (mean_y - expected).abs() < 0.01 * 4.9,
+            "{mean_y} vs {expected}"
+        );
+    }
+}
