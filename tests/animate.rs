@@ -101,6 +101,7 @@ fn emit_writes_frames_gif_apng_and_csv() {
         assert!(dir.join(format!("view/{f:02}.pfm")).is_file());
         assert!(dir.join(format!("cloth/{f:02}.obj")).is_file());
         assert!(dir.join(format!("cloth/{f:02}.ply")).is_file());
+        assert!(dir.join(format!("view_png/{f:02}.png")).is_file());
     }
 
     // GIF: 48 frames of 320×240, 4/100 s each (24 fps rounded to GIF's 10 ms), looping.
@@ -140,7 +141,15 @@ fn emit_writes_frames_gif_apng_and_csv() {
         &ocellus_engine::image_io::DecodeLimits::default(),
     )
     .unwrap();
-    assert_eq!(buf, ocellus_engine::sequence_write::image_to_rgba8(&pfm));
+    let srgb = ocellus_engine::sequence_write::image_to_rgba8(&pfm);
+    assert_eq!(buf, srgb);
+    // The PNG sequence holds the same bytes, without alpha.
+    let png0 = ocellus_engine::image_io::read_image(
+        &dir.join("view_png/00.png"),
+        &ocellus_engine::image_io::DecodeLimits::default(),
+    )
+    .unwrap();
+    assert_eq!(ocellus_engine::sequence_write::image_to_rgba8(&png0), srgb);
 
     // CSV: a header and one row per frame, time = frame / fps.
     let csv = std::fs::read_to_string(dir.join("physics.csv")).unwrap();

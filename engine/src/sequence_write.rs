@@ -213,6 +213,12 @@ impl AnimationWriter {
                 result.map_err(|e| self.write_error(e))?;
             }
             Encoding::Apng => self.apng_frames.push(rgba),
+            Encoding::Png => {
+                return Err(SequenceError::Unsupported {
+                    path: self.path.clone(),
+                    message: "a PNG sequence is written frame by frame, not as one file".into(),
+                });
+            }
         }
         self.frames += 1;
         Ok(())
@@ -237,6 +243,7 @@ impl AnimationWriter {
                 None => return Err(self.write_error("GIF encoder missing")),
             },
             Encoding::Apng => self.encode_apng(width, height)?,
+            Encoding::Png => return Err(self.write_error("not an animation format")),
         };
         write_atomic(&self.path, &bytes).map_err(|e| self.write_error(e))?;
         Ok(self.path)
@@ -270,7 +277,7 @@ impl AnimationWriter {
 /// | output | files |
 /// |--------|-------|
 /// | any | `NAME/F` per frame, `F` the frame's position zero-padded to the width of the last one (`00` … `47`), each written as [`crate::emit::emit_value`] writes it |
-/// | Image | also `NAME.gif` and/or `NAME.apng` (the output's `encode` entry; GIF by default) |
+/// | Image | also `NAME.gif`, `NAME.apng` and/or `NAME_png/F.png` (8-bit sRGB), as the output's `encode` entry says (GIF by default) |
 /// | Metrics | also `NAME.csv`: a header `frame,time_s,KEY…` (keys sorted, over all frames) and one row per frame; a key a frame lacks is an empty cell; numbers in shortest round-trip form, `NaN`/`inf`/`-inf` for non-finite ones |
 ///
 /// A frame whose output failed is skipped in that output's files.
@@ -309,12 +316,26 @@ impl FrameEmitter {
             }
             match value {
                 crate::value::Value::Image(image) => {
+                    let encodings = self
+                        .encodings
+                        .get(name)
+                        .cloned()
+                        .unwrap_or_else(|| vec![Encoding::Gif]);
+                    if encodings.contains(&Encoding::Png) {
+                        let folder = self.dir.join(format!("{name}_png"));
+                        let path = folder.join(format!("{element}.png"));
+                        match std::fs::create_dir_all(&folder)
+                            .map_err(|e| e.to_string())
+                            .and_then(|()| write_png_frame(&path, image))
+                        {
+                            Ok(()) => self.written.push(path),
+                            Err(e) => failed.push(format!("{}: {e}", path.display())),
+                        }
+                    }
                     let writers = self.writers.entry(name.clone()).or_insert_with(|| {
-                        self.encodings
-                            .get(name)
-                            .cloned()
-                            .unwrap_or_else(|| vec![Encoding::Gif])
+                        encodings
                             .into_iter()
+                            .filter(|e| *e != Encoding::Png)
                             .map(|e| {
                                 let path = self.dir.join(format!("{name}.{}", e.extension()));
                                 AnimationWriter::new(&path, e, self.fps)
@@ -364,6 +385,34 @@ impl FrameEmitter {
             Err(failed.join("\n"))
         }
     }
+}
+
+/// One frame as an 8-bit sRGB PNG (RGB, or RGBA for images with alpha), written atomically.
+fn write_png_frame(path: &Path, image: &Image) -> Result<(), String> {
+    let rgba = image_to_rgba8(image);
+    let (data, color) = if image.channels() == Channels::Rgba {
+        (rgba, png::ColorType::Rgba)
+    } else {
+        let rgb: Vec<u8> = rgba
+            .chunks_exact(4)
+            .flat_map(|p| [p[0], p[1], p[2]])
+            .collect();
+        (rgb, png::ColorType::Rgb)
+    };
+    let (w, h) = (
+        u32::try_from(image.width()).map_err(|e| e.to_string())?,
+        u32::try_from(image.height()).map_err(|e| e.to_string())?,
+    );
+    let mut bytes = Vec::new();
+    {
+        let mut encoder = png::Encoder::new(&mut bytes, w, h);
+        encoder.set_color(color);
+        encoder.set_depth(png::BitDepth::Eight);
+        let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
+        writer.write_image_data(&data).map_err(|e| e.to_string())?;
+        writer.finish().map_err(|e| e.to_string())?;
+    }
+    write_atomic(path, &bytes).map_err(|e| e.to_string())
 }
 
 fn csv_number(x: f64) -> String {

@@ -243,7 +243,7 @@ fn a_key_outside_the_parameter_range_is_a_load_error_at_the_track() {
     ));
     assert_eq!(errs.len(), 1, "{errs:#?}");
     assert!(errs[0].starts_with("anim.ron:4:60:"), "{errs:#?}");
-    assert!(errs[0].contains("at frame 2 (2.000 s)"), "{errs:#?}");
+    assert!(errs[0].contains("at frame 3 (3.000 s)"), "{errs:#?}");
     assert!(errs[0].contains("1000"), "{errs:#?}");
 }
 
@@ -257,4 +257,31 @@ fn duplicate_tracks_are_errors() {
             .any(|e| e.contains("parameter `blur.value` has two tracks")),
         "{errs:#?}"
     );
+}
+
+#[test]
+fn constant_speed_tracks_move_equal_distances_per_frame() {
+    // Keys at uneven spacing on a line: raw linear interpolation changes speed at the middle
+    // key, constant_speed does not.
+    let text = |constant: bool| {
+        format!(
+            r#"Graph(
+        nodes: {{ "a": (op: "t.source") }},
+        outputs: {{ "a": "a.value" }},
+        animation: (fps: 10, frames: 11, tracks: {{
+            "a.value": (interpolation: "linear", constant_speed: {constant},
+                        keys: [(0.0, 0.0), (0.2, 8.0), (1.0, 10.0)]),
+        }}),
+    )"#
+        )
+    };
+    let (reg, _) = registry();
+    let raw = scalars(&reg, &animated(&reg, &text(false), &[]), "a");
+    let even = scalars(&reg, &animated(&reg, &text(true), &[]), "a");
+    let steps = |v: &[f64]| v.windows(2).map(|w| w[1] - w[0]).collect::<Vec<_>>();
+    assert!((steps(&raw)[0] - 4.0).abs() < 1e-9 && (steps(&raw)[9] - 0.25).abs() < 1e-9);
+    for s in steps(&even) {
+        assert!((s - 1.0).abs() < 1e-3, "{even:?}");
+    }
+    assert_eq!((even[0], even[10]), (0.0, 10.0));
 }

@@ -3,8 +3,9 @@
 //!
 //! Algorithms are plain functions in [`skeleton`], [`skinning`], [`ik`] and [`physics`]; the
 //! operators are `animate.cloth` ([`cloth`]), `animate.pick` ([`pick`]), `animate.skin` and
-//! `animate.ik` ([`chain`]).
+//! `animate.ik` ([`chain`]), `animate.blend_shapes` ([`blend`]).
 
+pub mod blend;
 pub mod chain;
 pub mod cloth;
 pub mod ik;
