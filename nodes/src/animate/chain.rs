@@ -173,7 +173,7 @@ fn rotations_from_degrees(
     rotations_deg: &[f64],
     bones: usize,
 ) -> Result<Vec<UnitQuaternion<f64>>, String> {
-    if rotations_deg.len() % 3 != 0 {
+    if !rotations_deg.len().is_multiple_of(3) {
         return Err(format!(
             "rotations hold {} numbers; they come in threes (a rotation vector per bone)",
             rotations_deg.len()
@@ -679,8 +679,8 @@ mod tests {
                 panic!()
             };
             assert_eq!((joints.rows, joints.cols), (4, 3));
-            for k in 0..3 {
-                assert!((joints.get(3, k).unwrap() - target[k]).abs() < 1e-4);
+            for (k, t) in target.iter().enumerate() {
+                assert!((joints.get(3, k).unwrap() - t).abs() < 1e-4);
             }
             // Bone lengths are kept.
             for j in 0..3 {
@@ -738,8 +738,8 @@ mod tests {
         };
         // The far cap's centre vertex (last in the layout) sits on the bar's axis at x = 2.
         let tip = m.positions[m.positions.len() - 1];
-        for k in 0..3 {
-            assert!((f64::from(tip[k]) - target[k]).abs() < 1e-4, "{tip:?}");
+        for (k, t) in target.iter().enumerate() {
+            assert!((f64::from(tip[k]) - t).abs() < 1e-4, "{tip:?}");
         }
     }
 

@@ -208,10 +208,10 @@ Example:
         if !(p.mass_kg > 0.0 && p.mass_kg.is_finite()) {
             return Err(format!("`mass_kg` must be positive, got {}", p.mass_kg));
         }
-        if !(p.fps > 0.0) {
+        if p.fps.is_nan() || p.fps <= 0.0 {
             return Err(format!("`fps` must be positive, got {}", p.fps));
         }
-        if !(p.cg_tolerance > 0.0) {
+        if p.cg_tolerance.is_nan() || p.cg_tolerance <= 0.0 {
             return Err("`cg_tolerance` must be positive".into());
         }
         let finite = p.center.iter().chain(&p.gravity).all(|c| c.is_finite())
