@@ -2,8 +2,10 @@
 
 pub mod block_match;
 pub mod dense_lk;
+pub mod filters;
 pub mod flow;
 pub mod gray;
 pub mod horn_schunck;
+pub mod kalman;
 pub mod klt;
 pub mod synth;
