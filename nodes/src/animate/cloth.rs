@@ -167,7 +167,11 @@ Outputs: `frames`, one mesh per frame (frame 0 the rest state; grid uvs, area-we
 normals); `energy`, one row per frame with the columns time_s, kinetic_j, gravitational_j
 (relative to y = 0 along −gravity), spring_j, total_j, momentum_x/y/z, angular_momentum_x/y/z
 (about the origin), max_speed_m_s, cg_iterations, collisions; `metrics` with the peak and final
-kinetic energy, total steps and the lowest clearance to the colliders.
+kinetic energy, total steps, the lowest clearance to the spheres and infinite planes, and
+`frames_over_mesh_band`: frames in which the fastest particle moved farther in one substep than
+`mesh_band_m + margin_m`. Contacts with meshes and finite planes are found only that far behind
+the surface, so in such frames a particle may have passed through one (no continuous collision
+detection): raise `substeps` (or `mesh_band_m`) until it is 0.
 
 Example:
     "cloth": (op: "animate.cloth", inputs: { "colliders": "stage.scene" },
@@ -515,6 +519,11 @@ impl Operator for Cloth {
         ))));
         energy.extend(energy_row(0.0, &system.measure()));
         let mut lowest = clearance(&system, &colliders);
+        // Mesh (and finite-plane) contacts are found within `mesh_band_m` behind the surface:
+        // a particle that travels farther than that in one substep can pass through.
+        let has_mesh = colliders.iter().any(|c| matches!(c, Collider::Mesh(_)));
+        let substep_s = 1.0 / (p.fps * f64::from(p.substeps));
+        let mut frames_over_band = 0usize;
         let report = simulate(
             &mut system,
             &colliders,
@@ -526,6 +535,9 @@ impl Operator for Cloth {
                 ))));
                 energy.extend(energy_row((frame + 1) as f64 / p.fps, r));
                 lowest = lowest.min(clearance(state, &colliders));
+                if has_mesh && r.max_speed * substep_s > p.mesh_band_m + p.margin_m {
+                    frames_over_band += 1;
+                }
             },
         )
         .map_err(|e| OpError::failed(e.to_string()))?;
@@ -561,6 +573,7 @@ impl Operator for Cloth {
         if lowest.is_finite() {
             metrics.insert("min_clearance_m".into(), lowest);
         }
+        metrics.insert("frames_over_mesh_band".into(), frames_over_band as f64);
         let energy = Matrix::new(frames, ENERGY_COLUMNS.len(), energy)
             .map_err(|e| OpError::failed(e.to_string()))?;
         Ok(Outputs::new()
