@@ -31,6 +31,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<animate::chain::Ik>()?;
     registry.register::<animate::blend::BlendShapes>()?;
     registry.register::<video::kalman::KalmanTrack>()?;
+    registry.register::<video::particle::ParticleTrack>()?;
     registry.register::<capture::sequence::Sequence>()?;
     registry.register::<capture::moving::MovingShapes>()?;
     registry.register::<capture::moving::Select>()?;

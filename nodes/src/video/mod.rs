@@ -8,4 +8,5 @@ pub mod gray;
 pub mod horn_schunck;
 pub mod kalman;
 pub mod klt;
+pub mod particle;
 pub mod synth;
