@@ -2331,38 +2331,9 @@ mod tests {
         triangles: Vec<[Vec3; 3]>,
     }
 
-    /// Closest point on triangle `abc` to `p`, by the Voronoi region of `p` (vertex, edge or
-    /// face), with barycentric tests.
+    /// The mesh module's closest point on a triangle, for the brute-force collider.
     fn closest_on_triangle(p: Vec3, [a, b, c]: [Vec3; 3]) -> Vec3 {
-        let (ab, ac, ap) = (sub(b, a), sub(c, a), sub(p, a));
-        let (d1, d2) = (dot(ab, ap), dot(ac, ap));
-        if d1 <= 0.0 && d2 <= 0.0 {
-            return a;
-        }
-        let bp = sub(p, b);
-        let (d3, d4) = (dot(ab, bp), dot(ac, bp));
-        if d3 >= 0.0 && d4 <= d3 {
-            return b;
-        }
-        let vc = d1 * d4 - d3 * d2;
-        if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
-            return axpy(a, d1 / (d1 - d3), ab);
-        }
-        let cp = sub(p, c);
-        let (d5, d6) = (dot(ab, cp), dot(ac, cp));
-        if d6 >= 0.0 && d5 <= d6 {
-            return c;
-        }
-        let vb = d5 * d2 - d1 * d6;
-        if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
-            return axpy(a, d2 / (d2 - d6), ac);
-        }
-        let va = d3 * d6 - d5 * d4;
-        if va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0 {
-            return axpy(b, (d4 - d3) / ((d4 - d3) + (d5 - d6)), sub(c, b));
-        }
-        let denom = 1.0 / (va + vb + vc);
-        axpy(axpy(a, vb * denom, ab), vc * denom, ac)
+        crate::mesh::metrics::closest_point_on_triangle(p, a, b, c)
     }
 
     impl MeshCollider for TriangleSoup {
@@ -2408,43 +2379,6 @@ mod tests {
             triangles.push([p00, p11, p01]);
         }
         TriangleSoup { triangles }
-    }
-
-    #[test]
-    fn closest_point_on_triangle_regions() {
-        let t = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
-        assert!(
-            norm(sub(
-                closest_on_triangle([0.2, 0.3, 5.0], t),
-                [0.2, 0.3, 0.0]
-            )) < 1e-15
-        );
-        assert!(
-            norm(sub(
-                closest_on_triangle([-1.0, -1.0, 0.0], t),
-                [0.0, 0.0, 0.0]
-            )) < 1e-15
-        );
-        assert!(
-            norm(sub(
-                closest_on_triangle([2.0, -0.5, 1.0], t),
-                [1.0, 0.0, 0.0]
-            )) < 1e-15
-        );
-        assert!(
-            norm(sub(
-                closest_on_triangle([0.5, -2.0, 0.0], t),
-                [0.5, 0.0, 0.0]
-            )) < 1e-15
-        );
-        assert!(
-            norm(sub(
-                closest_on_triangle([-3.0, 0.25, 0.0], t),
-                [0.0, 0.25, 0.0]
-            )) < 1e-15
-        );
-        let q = closest_on_triangle([1.0, 1.0, 0.0], t);
-        assert!(norm(sub(q, [0.5, 0.5, 0.0])) < 1e-15);
     }
 
     #[test]

@@ -114,28 +114,12 @@ Example:
 impl Operator for KalmanTrack {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
         let p = &self.params;
-        let Value::Matrix(z) = inputs.require("measurements")? else {
-            return Err(OpError::input("measurements", "expected a Matrix"));
-        };
-        if z.cols != 2 {
-            return Err(OpError::input(
-                "measurements",
-                format!("expected N × 2 positions, got {} columns", z.cols),
-            ));
-        }
-        let rows: Vec<Option<DVector<f64>>> = z
-            .data
-            .chunks_exact(2)
-            .map(|r| (r[0].is_finite() && r[1].is_finite()).then(|| DVector::from_column_slice(r)))
-            .collect();
-        if z.data.iter().any(|v| v.is_infinite()) {
-            return Err(OpError::input("measurements", "infinite coordinate"));
-        }
+        let (frames, rows) = track_measurements(inputs)?;
         let n_state = match p.model {
             MotionModel::ConstantVelocity => 4,
             MotionModel::ConstantAcceleration => 6,
         };
-        let mut states = vec![f64::NAN; z.rows * n_state];
+        let mut states = vec![f64::NAN; frames * n_state];
         let mut metrics = Metrics::new();
         let (mut updates, mut rejected, mut chi2_sum, mut log_likelihood) =
             (0usize, 0usize, 0.0, 0.0);
@@ -173,7 +157,7 @@ impl Operator for KalmanTrack {
             let mut kf = built.map_err(|e| OpError::failed(e.to_string()))?;
             let transition = kf.transition().clone();
             let fail = |e: super::filters::FilterError| OpError::failed(e.to_string());
-            let mut steps: Vec<FilteredStep> = Vec::with_capacity(z.rows - first);
+            let mut steps: Vec<FilteredStep> = Vec::with_capacity(frames - first);
             // The first measurement initialises the state: record it as an update-free step.
             steps.push(FilteredStep {
                 predicted_state: kf.state().clone(),
@@ -224,11 +208,7 @@ impl Operator for KalmanTrack {
                 states[row * n_state..(row + 1) * n_state].copy_from_slice(x.as_slice());
             }
         }
-        let positions: Vec<f64> = states
-            .chunks_exact(n_state)
-            .flat_map(|s| [s[0], s[1]])
-            .collect();
-        metrics.insert("frames".into(), z.rows as f64);
+        metrics.insert("frames".into(), frames as f64);
         metrics.insert("updates".into(), updates as f64);
         metrics.insert("rejected".into(), rejected as f64);
         metrics.insert("missing".into(), missing as f64);
@@ -236,16 +216,57 @@ impl Operator for KalmanTrack {
         if updates > 0 {
             metrics.insert("mean_innovation_chi2".into(), chi2_sum / updates as f64);
         }
-        let matrix = |cols: usize, data: Vec<f64>| {
-            Matrix::new(z.rows, cols, data)
-                .map(|m| Value::Matrix(Arc::new(m)))
-                .map_err(|e| OpError::failed(e.to_string()))
-        };
-        Ok(Outputs::new()
-            .with("states", matrix(n_state, states)?)
-            .with("positions", matrix(2, positions)?)
-            .with("metrics", Value::metrics(metrics)))
+        track_outputs(frames, n_state, states, metrics)
     }
+}
+
+/// One position per frame, `None` where the frame has no measurement.
+pub(super) type TrackRows = Vec<Option<DVector<f64>>>;
+
+/// The `measurements` input of a track filter: its row count and each row's position (`None`
+/// for a row with a NaN). Not N × 2, or an infinite coordinate, is an input error.
+pub(super) fn track_measurements(inputs: &Inputs<'_>) -> Result<(usize, TrackRows), OpError> {
+    let Value::Matrix(z) = inputs.require("measurements")? else {
+        return Err(OpError::input("measurements", "expected a Matrix"));
+    };
+    if z.cols != 2 {
+        return Err(OpError::input(
+            "measurements",
+            format!("expected N × 2 positions, got {} columns", z.cols),
+        ));
+    }
+    if z.data.iter().any(|v| v.is_infinite()) {
+        return Err(OpError::input("measurements", "infinite coordinate"));
+    }
+    let rows = z
+        .data
+        .chunks_exact(2)
+        .map(|r| (r[0].is_finite() && r[1].is_finite()).then(|| DVector::from_column_slice(r)))
+        .collect();
+    Ok((z.rows, rows))
+}
+
+/// The outputs of a track filter: `states` (frames × n), `positions` (its first two columns)
+/// and `metrics`.
+pub(super) fn track_outputs(
+    frames: usize,
+    n_state: usize,
+    states: Vec<f64>,
+    metrics: Metrics,
+) -> Result<Outputs, OpError> {
+    let positions: Vec<f64> = states
+        .chunks_exact(n_state)
+        .flat_map(|s| [s[0], s[1]])
+        .collect();
+    let matrix = |cols: usize, data: Vec<f64>| {
+        Matrix::new(frames, cols, data)
+            .map(|m| Value::Matrix(Arc::new(m)))
+            .map_err(|e| OpError::failed(e.to_string()))
+    };
+    Ok(Outputs::new()
+        .with("states", matrix(n_state, states)?)
+        .with("positions", matrix(2, positions)?)
+        .with("metrics", Value::metrics(metrics)))
 }
 
 #[cfg(test)]

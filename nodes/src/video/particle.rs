@@ -3,15 +3,14 @@
 //! constant-velocity motion model and an outlier-tolerant measurement likelihood — where a
 //! Kalman filter's Gaussian assumption breaks (clutter, gross detector errors).
 
-use std::sync::Arc;
-
 use nalgebra::DVector;
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::types::PortType;
-use ocellus_engine::value::{Matrix, Metrics, Value};
+use ocellus_engine::value::Metrics;
 use ocellus_engine::{param_enum, params};
 
 use super::filters::{ParticleFilter, Resampling, SplitMix64};
+use super::kalman::{track_measurements, track_outputs};
 
 param_enum! {
     /// Resampling scheme of `video.particle_filter`.
@@ -134,25 +133,9 @@ Example:
 impl Operator for ParticleTrack {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
         let p = &self.params;
-        let Value::Matrix(z) = inputs.require("measurements")? else {
-            return Err(OpError::input("measurements", "expected a Matrix"));
-        };
-        if z.cols != 2 {
-            return Err(OpError::input(
-                "measurements",
-                format!("expected N × 2 positions, got {} columns", z.cols),
-            ));
-        }
-        if z.data.iter().any(|v| v.is_infinite()) {
-            return Err(OpError::input("measurements", "infinite coordinate"));
-        }
-        let rows: Vec<Option<[f64; 2]>> = z
-            .data
-            .chunks_exact(2)
-            .map(|r| (r[0].is_finite() && r[1].is_finite()).then_some([r[0], r[1]]))
-            .collect();
+        let (frames, rows) = track_measurements(inputs)?;
         let missing = rows.iter().filter(|r| r.is_none()).count();
-        let mut states = vec![f64::NAN; z.rows * 4];
+        let mut states = vec![f64::NAN; frames * 4];
         let (mut updates, mut resamplings, mut ess_sum, mut log_likelihood) =
             (0usize, 0usize, 0.0, 0.0);
         let scheme = match p.resampling {
@@ -217,9 +200,8 @@ impl Operator for ParticleTrack {
                 }
             }
         }
-        let positions: Vec<f64> = states.chunks_exact(4).flat_map(|s| [s[0], s[1]]).collect();
         let mut metrics = Metrics::new();
-        metrics.insert("frames".into(), z.rows as f64);
+        metrics.insert("frames".into(), frames as f64);
         metrics.insert("updates".into(), updates as f64);
         metrics.insert("missing".into(), missing as f64);
         metrics.insert("resamplings".into(), resamplings as f64);
@@ -227,15 +209,7 @@ impl Operator for ParticleTrack {
         if updates > 0 {
             metrics.insert("mean_ess".into(), ess_sum / updates as f64);
         }
-        let matrix = |cols: usize, data: Vec<f64>| {
-            Matrix::new(z.rows, cols, data)
-                .map(|m| Value::Matrix(Arc::new(m)))
-                .map_err(|e| OpError::failed(e.to_string()))
-        };
-        Ok(Outputs::new()
-            .with("states", matrix(4, states)?)
-            .with("positions", matrix(2, positions)?)
-            .with("metrics", Value::metrics(metrics)))
+        track_outputs(frames, 4, states, metrics)
     }
 }
 
@@ -252,7 +226,10 @@ fn log_sum_exp(a: f64, b: f64) -> f64 {
 mod tests {
     #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+    use std::sync::Arc;
+
     use ocellus_engine::op::Op;
+    use ocellus_engine::value::{Matrix, Value};
 
     use super::super::kalman::{KalmanParams, KalmanTrack};
     use super::*;
