@@ -101,6 +101,10 @@ pub struct RunArgs {
     /// ordinary run.
     #[arg(long, value_name = "N")]
     pub frame: Option<i64>,
+    /// Of a streaming graph, run it as one batch run: every sequence as a whole list (the
+    /// same values, all frames in memory).
+    #[arg(long)]
+    pub batch: bool,
     /// Persist node results here and reuse them across runs.
     #[arg(long, value_name = "DIR")]
     pub cache: Option<PathBuf>,
@@ -213,6 +217,21 @@ fn load(
 fn check(registry: &mut Registry, path: &Path, set: &[String], plugins: Plugins) -> ExitCode {
     match load(registry, path, set, plugins) {
         Ok(graph) => {
+            let streams = match crate::streaming::stream_spec(registry, path, set) {
+                Ok(Some(spec)) => format!(
+                    ", streams (capacity {}, {} policy)",
+                    spec.capacity,
+                    match spec.policy {
+                        ocellus_engine::stream::Policy::Block => "block",
+                        ocellus_engine::stream::Policy::Drop => "drop",
+                    }
+                ),
+                Ok(None) => String::new(),
+                Err(diags) => {
+                    print_diagnostics(&diags, path);
+                    return ExitCode::from(EXIT_INVALID);
+                }
+            };
             let frames = match crate::animation::timeline(registry, path, set) {
                 Ok(Some(a)) => format!(", {} frames at {} fps", a.frames, a.fps),
                 Ok(None) => String::new(),
@@ -222,7 +241,7 @@ fn check(registry: &mut Registry, path: &Path, set: &[String], plugins: Plugins)
                 }
             };
             println!(
-                "{}: ok — graph `{}`, {} nodes, {} outputs{frames}",
+                "{}: ok — graph `{}`, {} nodes, {} outputs{frames}{streams}",
                 path.display(),
                 graph.name,
                 graph.nodes.len(),
@@ -302,6 +321,23 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
     } else {
         args.threads
     };
+    match crate::streaming::stream_spec(registry, &args.graph, &args.set) {
+        Ok(Some(spec)) if !args.batch => {
+            if let Some(frame) = args.frame {
+                eprintln!(
+                    "error: --frame {frame}: `{}` streams; --frame selects a frame of an animation",
+                    args.graph.display()
+                );
+                return ExitCode::from(EXIT_INVALID);
+            }
+            return crate::streaming::run_streamed(args, &graph, &spec, threads);
+        }
+        Ok(_) => {}
+        Err(diags) => {
+            print_diagnostics(&diags, &args.graph);
+            return ExitCode::from(EXIT_INVALID);
+        }
+    }
     let graph = match (
         crate::animation::timeline(registry, &args.graph, &args.set),
         args.frame,

@@ -5,6 +5,7 @@ mod cli;
 mod ops;
 mod profile;
 mod report;
+mod streaming;
 
 use std::process::ExitCode;
 

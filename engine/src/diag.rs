@@ -103,6 +103,8 @@ pub enum Code {
     Plugin,
     /// A malformed `animation` section or track.
     Animation,
+    /// A malformed `stream` section, or a graph that cannot stream.
+    Stream,
 }
 
 impl Code {
@@ -132,6 +134,7 @@ impl Code {
             Code::BadOverride => "ocellus::bad_override",
             Code::Plugin => "ocellus::plugin",
             Code::Animation => "ocellus::animation",
+            Code::Stream => "ocellus::stream",
         }
     }
 }

@@ -771,7 +771,7 @@ fn gather(state: &State<'_>, edge: &InputEdge) -> Result<Option<Value>, String> 
 
 /// `value` itself, or its element `index` (negative: from the end); out of range is an error
 /// naming the node, port, index and length.
-fn select(
+pub(crate) fn select(
     graph: &Graph,
     node: usize,
     port: usize,
@@ -819,7 +819,7 @@ fn record_failure(state: &State<'_>, i: usize, message: String) {
     }
 }
 
-fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+pub(crate) fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
     if let Some(s) = payload.downcast_ref::<&str>() {
         (*s).to_string()
     } else if let Some(s) = payload.downcast_ref::<String>() {
@@ -902,7 +902,7 @@ pub fn run_node(
 }
 
 /// Orders an operator's outputs by its declared ports, checking presence and types.
-fn collect_outputs(
+pub(crate) fn collect_outputs(
     node: &Node,
     mut outputs: crate::op::Outputs,
     element: bool,

@@ -27,6 +27,7 @@ pub mod resolve;
 pub mod ron_syntax;
 pub mod sequence_write;
 pub mod spec;
+pub mod stream;
 pub mod summary;
 pub mod testing;
 pub mod timeline;

@@ -20,6 +20,10 @@ pub struct PortSpec {
     pub doc: String,
     /// Inputs only: whether the port may be left unconnected.
     pub optional: bool,
+    /// A `List<T>` port that is a frame sequence: a source's output streamed one element per
+    /// packet, or a sequence operator's input consumed (and output produced) one element per
+    /// packet. See [`crate::stream`].
+    pub per_frame: bool,
 }
 
 impl PortSpec {
@@ -30,7 +34,14 @@ impl PortSpec {
             ty,
             doc: doc.to_string(),
             optional: false,
+            per_frame: false,
         }
+    }
+
+    /// Marks a `List<T>` port as a frame sequence (see [`PortSpec::per_frame`]).
+    pub fn per_frame(mut self) -> PortSpec {
+        self.per_frame = true;
+        self
     }
 
     /// Marks an input port as optional.
@@ -179,6 +190,16 @@ impl<'a> Inputs<'a> {
         Inputs { specs, values }
     }
 
+    /// The port descriptions, in order.
+    pub fn specs(&self) -> &'a [PortSpec] {
+        self.specs
+    }
+
+    /// The values, one per port, in order.
+    pub fn values(&self) -> &'a [Option<Value>] {
+        self.values
+    }
+
     /// The value on port `name`, if connected.
     pub fn get(&self, name: &str) -> Option<&'a Value> {
         let index = self.specs.iter().position(|s| s.name == name)?;
@@ -287,6 +308,157 @@ pub trait Operator: Send + Sync {
     fn fingerprint(&self) -> Result<Vec<u8>, OpError> {
         Ok(Vec::new())
     }
+
+    /// For an operator whose `per_frame` outputs can be produced one frame at a time (a
+    /// capture source): the producer, configured from the node's inputs (all of them whole
+    /// values). `None` (the default) when the operator cannot stream.
+    fn frame_source(
+        &self,
+        ctx: &RunContext,
+        inputs: &Inputs<'_>,
+    ) -> Option<Result<Box<dyn FrameSource>, OpError>> {
+        let _ = (ctx, inputs);
+        None
+    }
+
+    /// For a sequence operator (one with `per_frame` inputs): a fresh state, configured from the
+    /// inputs that are not `per_frame` (those are unset here). `None` (the default) when the
+    /// operator only runs on whole lists.
+    fn sequence(
+        &self,
+        ctx: &RunContext,
+        inputs: &Inputs<'_>,
+    ) -> Option<Result<Box<dyn SequenceState>, OpError>> {
+        let _ = (ctx, inputs);
+        None
+    }
+}
+
+/// Where one packet of a stream sits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Packet {
+    /// Position of the frame in its source's sequence (0-based). Dropped frames leave gaps.
+    pub index: usize,
+    /// When the frame was captured, microseconds on the source's clock. A batch run (whole
+    /// lists) numbers frames by index and sets this to the index.
+    pub timestamp_us: i64,
+}
+
+/// Produces a source's `per_frame` outputs one frame at a time (see
+/// [`Operator::frame_source`]).
+pub trait FrameSource: Send {
+    /// Number of frames.
+    fn frames(&self) -> usize;
+    /// Capture time of frame `index`, microseconds; strictly increasing with `index`.
+    fn timestamp_us(&self, index: usize) -> i64;
+    /// Element `index` of every `per_frame` output, by port name.
+    fn frame(&mut self, ctx: &RunContext, index: usize) -> Result<Outputs, OpError>;
+    /// The outputs that are not `per_frame` (e.g. a frame count), known before the first frame.
+    fn statics(&mut self, ctx: &RunContext) -> Result<Outputs, OpError> {
+        let _ = ctx;
+        Ok(Outputs::new())
+    }
+}
+
+/// The state a sequence operator keeps between frames (see [`Operator::sequence`]).
+///
+/// A batch run feeds the elements of the whole lists in order ([`run_sequence_batch`]); a
+/// stream feeds the same elements as they arrive. The same frames therefore give the same
+/// results in both modes — the state must depend only on the frames and their `index`, never
+/// on timing.
+pub trait SequenceState: Send {
+    /// One frame: the `per_frame` inputs hold this frame's element, the others their whole
+    /// value. Returns this frame's element of every `per_frame` output.
+    fn push(
+        &mut self,
+        ctx: &RunContext,
+        packet: Packet,
+        inputs: &Inputs<'_>,
+    ) -> Result<Outputs, OpError>;
+    /// After the last frame: every output that is not `per_frame`.
+    fn finish(&mut self, ctx: &RunContext) -> Result<Outputs, OpError>;
+}
+
+/// Runs a sequence operator on whole lists: every connected `per_frame` input must be a list of
+/// the same length; elements are pushed in order (packet `index` = timestamp = position), the
+/// `per_frame` outputs are collected into lists and the state's final outputs added.
+pub fn run_sequence_batch(
+    op: &dyn Operator,
+    ctx: &RunContext,
+    inputs: &Inputs<'_>,
+    outputs: &[PortSpec],
+) -> Result<Outputs, OpError> {
+    let specs = inputs.specs();
+    let values = inputs.values();
+    let statics: Vec<Option<Value>> = specs
+        .iter()
+        .zip(values)
+        .map(|(spec, v)| if spec.per_frame { None } else { v.clone() })
+        .collect();
+    let mut state = op
+        .sequence(ctx, &Inputs::new(specs, &statics))
+        .ok_or_else(|| OpError::failed("the operator has no sequence state"))??;
+    let mut frames: Option<(usize, &str)> = None;
+    for (spec, value) in specs.iter().zip(values) {
+        if !spec.per_frame {
+            continue;
+        }
+        let Some(value) = value else { continue };
+        let Value::List(list) = value else {
+            return Err(OpError::input(&spec.name, "expected a list of frames"));
+        };
+        match frames {
+            None => frames = Some((list.items.len(), &spec.name)),
+            Some((n, first)) if n != list.items.len() => {
+                return Err(OpError::input(
+                    &spec.name,
+                    format!(
+                        "frame lists differ in length: `{first}` has {n} frames, `{}` has {}",
+                        spec.name,
+                        list.items.len()
+                    ),
+                ));
+            }
+            Some(_) => {}
+        }
+    }
+    let n = frames.map_or(0, |(n, _)| n);
+    let per_frame: Vec<&PortSpec> = outputs.iter().filter(|s| s.per_frame).collect();
+    let mut columns: Vec<Vec<Value>> = vec![Vec::with_capacity(n); per_frame.len()];
+    let mut element = statics.clone();
+    for k in 0..n {
+        for ((slot, spec), value) in element.iter_mut().zip(specs).zip(values) {
+            if spec.per_frame {
+                *slot = match value {
+                    Some(Value::List(list)) => list.items.get(k).cloned(),
+                    _ => None,
+                };
+            }
+        }
+        let frame_ctx = RunContext {
+            element: Some(k),
+            ..ctx.clone()
+        };
+        let packet = Packet {
+            index: k,
+            timestamp_us: k as i64,
+        };
+        let mut out = state
+            .push(&frame_ctx, packet, &Inputs::new(specs, &element))
+            .map_err(|e| OpError::failed(format!("frame {k}: {e}")))?;
+        for (column, spec) in columns.iter_mut().zip(&per_frame) {
+            let value = out.take(&spec.name).ok_or_else(|| {
+                OpError::failed(format!("frame {k}: no value for output `{}`", spec.name))
+            })?;
+            column.push(value);
+        }
+    }
+    let mut result = state.finish(ctx)?;
+    for (items, spec) in columns.into_iter().zip(per_frame) {
+        let element = spec.ty.element().cloned().unwrap_or(PortType::Integer);
+        result.set(&spec.name, Value::list(element, items));
+    }
+    Ok(result)
 }
 
 /// Builds operator instances from checked parameters.

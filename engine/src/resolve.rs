@@ -862,6 +862,19 @@ impl Resolver<'_> {
             );
         }
 
+        if let Some(section) = &sub_spec.stream {
+            self.diags.push(
+                Diagnostic::at(
+                    Code::Stream,
+                    &sub_source,
+                    crate::spec::head_span(section),
+                    format!("subgraph `{}` has a `stream` section", path.display()),
+                )
+                .label("only the top-level graph says how it streams")
+                .help("move the `stream` section to the top-level graph"),
+            );
+        }
+
         // Bind the subgraph's declared inputs.
         let mut bound: HashMap<String, Source> = HashMap::new();
         let mut ok = true;

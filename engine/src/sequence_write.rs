@@ -106,16 +106,31 @@ pub fn image_to_rgba8(image: &Image) -> Vec<u8> {
     out
 }
 
-/// Frames waiting to be encoded: APNG needs the frame count in its header, GIF does not, but
-/// both are written at `finish`.
+/// An animation being written. Frames are encoded as they arrive into a temp file next to the
+/// target (GIF always; APNG when the frame count is known up front, see
+/// [`AnimationWriter::with_frame_count`] — otherwise APNG frames wait in memory, since the
+/// format's header holds the count), renamed over the target by [`finish`](Self::finish), and
+/// removed if the writer is dropped unfinished.
 pub struct AnimationWriter {
     path: PathBuf,
     encoding: Encoding,
     fps: f64,
     size: Option<(usize, usize)>,
     frames: usize,
-    gif: Option<gif::Encoder<Vec<u8>>>,
+    expected: Option<usize>,
+    temp: Option<PathBuf>,
+    gif: Option<gif::Encoder<std::io::BufWriter<std::fs::File>>>,
+    apng: Option<png::Writer<std::fs::File>>,
     apng_frames: Vec<Vec<u8>>,
+    last_rgba: Vec<u8>,
+}
+
+impl Drop for AnimationWriter {
+    fn drop(&mut self) {
+        if let Some(temp) = self.temp.take() {
+            let _ = std::fs::remove_file(temp);
+        }
+    }
 }
 
 impl std::fmt::Debug for AnimationWriter {
@@ -138,9 +153,48 @@ impl AnimationWriter {
             fps,
             size: None,
             frames: 0,
+            expected: None,
+            temp: None,
             gif: None,
+            apng: None,
             apng_frames: Vec::new(),
+            last_rgba: Vec::new(),
         }
+    }
+
+    /// A writer that knows it will get `frames` frames, so APNG is streamed to disk too (a
+    /// stream writer's memory stays flat). Fewer frames at [`finish`](Self::finish) repeat the
+    /// last one (a dropped frame shows the previous picture); more are an error.
+    pub fn with_frame_count(path: &Path, encoding: Encoding, fps: f64, frames: usize) -> Self {
+        let mut writer = AnimationWriter::new(path, encoding, fps);
+        writer.expected = Some(frames);
+        writer
+    }
+
+    /// Opens the temp file the frames stream into.
+    fn open_temp(&mut self) -> Result<std::fs::File, SequenceError> {
+        static COUNTER: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let name = self
+            .path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let dir = match self.path.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        let temp = dir.join(format!(
+            ".{name}.{}.{}.part",
+            std::process::id(),
+            COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+        ));
+        let file = std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&temp)
+            .map_err(|e| self.write_error(e))?;
+        self.temp = Some(temp);
+        Ok(file)
     }
 
     fn write_error(&self, message: impl std::fmt::Display) -> SequenceError {
@@ -196,12 +250,16 @@ impl AnimationWriter {
                 // Sizes were checked against GIF_MAX_SIDE above.
                 let (w16, h16) = (width as u16, height as u16);
                 if self.gif.is_none() {
-                    let mut encoder = gif::Encoder::new(Vec::new(), w16, h16, &[])
-                        .map_err(|e| self.write_error(e))?;
+                    let out = std::io::BufWriter::new(self.open_temp()?);
+                    let mut encoder =
+                        gif::Encoder::new(out, w16, h16, &[]).map_err(|e| self.write_error(e))?;
                     encoder
                         .set_repeat(gif::Repeat::Infinite)
                         .map_err(|e| self.write_error(e))?;
                     self.gif = Some(encoder);
+                }
+                if self.expected.is_some() {
+                    self.last_rgba = rgba.clone(); // for `repeat_last`
                 }
                 let mut frame =
                     gif::Frame::from_rgba_speed(w16, h16, &mut rgba, GIF_QUANTIZE_SPEED);
@@ -212,13 +270,70 @@ impl AnimationWriter {
                 };
                 result.map_err(|e| self.write_error(e))?;
             }
-            Encoding::Apng => self.apng_frames.push(rgba),
+            Encoding::Apng => match self.expected {
+                Some(count) => {
+                    if self.frames >= count {
+                        return Err(
+                            self.write_error(format!("more than the {count} frames announced"))
+                        );
+                    }
+                    if self.apng.is_none() {
+                        let out = self.open_temp()?;
+                        self.apng = Some(self.apng_header(out, width, height, count)?);
+                    }
+                    let result = match self.apng.as_mut() {
+                        Some(writer) => writer.write_image_data(&rgba).map_err(|e| e.to_string()),
+                        None => Err("APNG writer missing".to_string()),
+                    };
+                    result.map_err(|e| self.write_error(e))?;
+                    self.last_rgba = rgba;
+                }
+                None => self.apng_frames.push(rgba),
+            },
             Encoding::Png => {
                 return Err(SequenceError::Unsupported {
                     path: self.path.clone(),
                     message: "a PNG sequence is written frame by frame, not as one file".into(),
                 });
             }
+        }
+        self.frames += 1;
+        Ok(())
+    }
+
+    /// Adds the previous frame again (a stream's dropped frame). Errors before the first.
+    pub fn repeat_last(&mut self) -> Result<(), SequenceError> {
+        if self.frames == 0 {
+            return Err(self.write_error("no frame to repeat"));
+        }
+        match self.encoding {
+            Encoding::Apng if self.apng.is_some() => {
+                let last = std::mem::take(&mut self.last_rgba);
+                let result = match self.apng.as_mut() {
+                    Some(writer) => writer.write_image_data(&last).map_err(|e| e.to_string()),
+                    None => Err("APNG writer missing".to_string()),
+                };
+                self.last_rgba = last;
+                result.map_err(|e| self.write_error(e))?;
+            }
+            Encoding::Apng => {
+                let last = self.apng_frames.last().cloned().unwrap_or_default();
+                self.apng_frames.push(last);
+            }
+            Encoding::Gif => {
+                let (w, h) = self.size.unwrap_or((0, 0));
+                let mut rgba = self.last_rgba.clone();
+                // Sizes were checked against GIF_MAX_SIDE in `push`.
+                let mut frame =
+                    gif::Frame::from_rgba_speed(w as u16, h as u16, &mut rgba, GIF_QUANTIZE_SPEED);
+                frame.delay = gif_delay_cs(self.fps);
+                let result = match self.gif.as_mut() {
+                    Some(encoder) => encoder.write_frame(&frame).map_err(|e| e.to_string()),
+                    None => Err("GIF encoder missing".to_string()),
+                };
+                result.map_err(|e| self.write_error(e))?;
+            }
+            Encoding::Png => return Err(self.write_error("not an animation format")),
         }
         self.frames += 1;
         Ok(())
@@ -237,35 +352,90 @@ impl AnimationWriter {
                 message: "no frames".into(),
             });
         };
-        let bytes = match self.encoding {
-            Encoding::Gif => match self.gif.take() {
-                Some(encoder) => encoder.into_inner().map_err(|e| self.write_error(e))?,
-                None => return Err(self.write_error("GIF encoder missing")),
-            },
-            Encoding::Apng => self.encode_apng(width, height)?,
+        match self.encoding {
+            Encoding::Gif => {
+                let encoder = self
+                    .gif
+                    .take()
+                    .ok_or_else(|| self.write_error("GIF encoder missing"))?;
+                let out = encoder.into_inner().map_err(|e| self.write_error(e))?;
+                let file = out.into_inner().map_err(|e| self.write_error(e.error()))?;
+                file.sync_all().map_err(|e| self.write_error(e))?;
+                drop(file);
+                self.commit()?;
+            }
+            Encoding::Apng if self.apng.is_some() => {
+                let count = self.expected.unwrap_or(self.frames);
+                let last = std::mem::take(&mut self.last_rgba);
+                let mut writer = self
+                    .apng
+                    .take()
+                    .ok_or_else(|| self.write_error("APNG writer missing"))?;
+                for _ in self.frames..count {
+                    writer
+                        .write_image_data(&last)
+                        .map_err(|e| self.write_error(e))?;
+                }
+                // `finish` writes the end chunk and closes the file.
+                writer.finish().map_err(|e| self.write_error(e))?;
+                if let Some(temp) = &self.temp {
+                    std::fs::File::open(temp)
+                        .and_then(|f| f.sync_all())
+                        .map_err(|e| self.write_error(e))?;
+                }
+                self.commit()?;
+            }
+            Encoding::Apng => {
+                let bytes = self.encode_apng(width, height)?;
+                write_atomic(&self.path, &bytes).map_err(|e| self.write_error(e))?;
+            }
             Encoding::Png => return Err(self.write_error("not an animation format")),
-        };
-        write_atomic(&self.path, &bytes).map_err(|e| self.write_error(e))?;
-        Ok(self.path)
+        }
+        Ok(self.path.clone())
+    }
+
+    /// Renames the (synced, closed) temp file over the target.
+    fn commit(&mut self) -> Result<(), SequenceError> {
+        let temp = self
+            .temp
+            .take()
+            .ok_or_else(|| self.write_error("temp file missing"))?;
+        if let Err(e) = std::fs::rename(&temp, &self.path) {
+            let _ = std::fs::remove_file(&temp);
+            return Err(self.write_error(e));
+        }
+        Ok(())
+    }
+
+    fn apng_header<W: std::io::Write>(
+        &self,
+        out: W,
+        width: usize,
+        height: usize,
+        count: usize,
+    ) -> Result<png::Writer<W>, SequenceError> {
+        let count = u32::try_from(count).map_err(|e| self.write_error(e))?;
+        let err = |e: png::EncodingError| self.write_error(e);
+        // Sizes were checked to fit u32 in `push`.
+        let mut encoder = png::Encoder::new(out, width as u32, height as u32);
+        encoder.set_color(png::ColorType::Rgba);
+        encoder.set_depth(png::BitDepth::Eight);
+        encoder.set_animated(count, 0).map_err(err)?;
+        let (num, den) = apng_delay(self.fps);
+        encoder.set_frame_delay(num, den).map_err(err)?;
+        encoder.write_header().map_err(err)
     }
 
     fn encode_apng(&self, width: usize, height: usize) -> Result<Vec<u8>, SequenceError> {
-        let count = u32::try_from(self.apng_frames.len()).map_err(|e| self.write_error(e))?;
         let mut bytes = Vec::new();
-        let err = |e: png::EncodingError| self.write_error(e);
         {
-            // Sizes were checked to fit u32 in `push`.
-            let mut encoder = png::Encoder::new(&mut bytes, width as u32, height as u32);
-            encoder.set_color(png::ColorType::Rgba);
-            encoder.set_depth(png::BitDepth::Eight);
-            encoder.set_animated(count, 0).map_err(err)?;
-            let (num, den) = apng_delay(self.fps);
-            encoder.set_frame_delay(num, den).map_err(err)?;
-            let mut writer = encoder.write_header().map_err(err)?;
+            let mut writer = self.apng_header(&mut bytes, width, height, self.apng_frames.len())?;
             for frame in &self.apng_frames {
-                writer.write_image_data(frame).map_err(err)?;
+                writer
+                    .write_image_data(frame)
+                    .map_err(|e| self.write_error(e))?;
             }
-            writer.finish().map_err(err)?;
+            writer.finish().map_err(|e| self.write_error(e))?;
         }
         Ok(bytes)
     }
@@ -285,10 +455,22 @@ pub struct FrameEmitter {
     dir: PathBuf,
     digits: usize,
     fps: f64,
+    /// Frames announced (a stream's source length): APNG streams to disk and dropped frames
+    /// are filled; `None` for animations.
+    expected: Option<usize>,
     encodings: std::collections::BTreeMap<String, Vec<Encoding>>,
+    metrics: Vec<crate::stream::MetricsFormat>,
     writers: std::collections::BTreeMap<String, Vec<AnimationWriter>>,
     tables: std::collections::BTreeMap<String, Vec<(i64, f64, crate::value::Metrics)>>,
+    lines: std::collections::BTreeMap<String, JsonLines>,
     written: Vec<PathBuf>,
+}
+
+/// A JSON-lines file being written: a temp file renamed at the end.
+struct JsonLines {
+    temp: PathBuf,
+    path: PathBuf,
+    out: std::io::BufWriter<std::fs::File>,
 }
 
 impl FrameEmitter {
@@ -298,21 +480,71 @@ impl FrameEmitter {
             dir: dir.to_path_buf(),
             digits: animated.frames.saturating_sub(1).to_string().len(),
             fps: animated.fps,
+            expected: None,
             encodings: animated.encode.clone(),
+            metrics: vec![crate::stream::MetricsFormat::Csv],
             writers: std::collections::BTreeMap::new(),
             tables: std::collections::BTreeMap::new(),
+            lines: std::collections::BTreeMap::new(),
+            written: Vec::new(),
+        }
+    }
+
+    /// An emitter for a stream of `frames` source frames at `fps` (the animation files' rate)
+    /// into `dir`, with the stream section's encodings and metrics formats. Files are named by
+    /// the frame's source index, so a dropped frame leaves a gap (and holds the previous
+    /// picture in GIF/APNG). `NAME.jsonl` holds one object `{"frame", "time_s", KEY…}` per
+    /// frame (non-finite numbers as `null`), appended as frames arrive.
+    pub fn for_stream(
+        dir: &Path,
+        spec: &crate::stream::StreamSpec,
+        frames: usize,
+        fps: f64,
+    ) -> FrameEmitter {
+        FrameEmitter {
+            dir: dir.to_path_buf(),
+            digits: frames.saturating_sub(1).to_string().len(),
+            fps,
+            expected: Some(frames),
+            encodings: spec.encode.clone(),
+            metrics: spec.metrics.clone(),
+            writers: std::collections::BTreeMap::new(),
+            tables: std::collections::BTreeMap::new(),
+            lines: std::collections::BTreeMap::new(),
             written: Vec::new(),
         }
     }
 
     /// Writes one frame's outputs.
     pub fn frame(&mut self, run: &crate::timeline::FrameRun) -> Result<(), String> {
+        self.outputs(run.index, run.frame, run.time, &run.report.outputs)
+    }
+
+    /// Writes one stream packet's outputs.
+    pub fn packet(&mut self, frame: &crate::stream::StreamFrame) -> Result<(), String> {
+        let packet = frame.packet;
+        self.outputs(
+            packet.index,
+            packet.index as i64,
+            packet.timestamp_us as f64 / 1e6,
+            &frame.outputs,
+        )
+    }
+
+    /// Writes the outputs of frame `index` (number `frame`, at `time` s).
+    fn outputs(
+        &mut self,
+        index: usize,
+        frame: i64,
+        time: f64,
+        outputs: &[(String, crate::value::Value)],
+    ) -> Result<(), String> {
         let mut failed = Vec::new();
-        for (name, value) in &run.report.outputs {
-            let element = format!("{:0width$}", run.index, width = self.digits);
+        for (name, value) in outputs {
+            let element = format!("{index:0width$}", width = self.digits);
             match crate::emit::emit_value(&self.dir.join(name), &element, value) {
                 Ok(files) => self.written.extend(files),
-                Err(e) => failed.push(format!("output `{name}`, frame {}: {e}", run.frame)),
+                Err(e) => failed.push(format!("output `{name}`, frame {frame}: {e}")),
             }
             match value {
                 crate::value::Value::Image(image) => {
@@ -332,27 +564,47 @@ impl FrameEmitter {
                             Err(e) => failed.push(format!("{}: {e}", path.display())),
                         }
                     }
+                    let (dir, fps, expected) = (&self.dir, self.fps, self.expected);
                     let writers = self.writers.entry(name.clone()).or_insert_with(|| {
                         encodings
                             .into_iter()
                             .filter(|e| *e != Encoding::Png)
                             .map(|e| {
-                                let path = self.dir.join(format!("{name}.{}", e.extension()));
-                                AnimationWriter::new(&path, e, self.fps)
+                                let path = dir.join(format!("{name}.{}", e.extension()));
+                                match expected {
+                                    Some(n) => AnimationWriter::with_frame_count(&path, e, fps, n),
+                                    None => AnimationWriter::new(&path, e, fps),
+                                }
                             })
                             .collect()
                     });
                     for w in writers {
+                        // A dropped frame holds the previous picture.
+                        while expected.is_some() && w.frames() < index && w.frames() > 0 {
+                            if let Err(e) = w.repeat_last() {
+                                failed.push(e.to_string());
+                                break;
+                            }
+                        }
                         if let Err(e) = w.push(image) {
                             failed.push(e.to_string());
                         }
                     }
                 }
-                crate::value::Value::Metrics(m) => self
-                    .tables
-                    .entry(name.clone())
-                    .or_default()
-                    .push((run.frame, run.time, (**m).clone())),
+                crate::value::Value::Metrics(m) => {
+                    if self.metrics.contains(&crate::stream::MetricsFormat::Csv) {
+                        self.tables.entry(name.clone()).or_default().push((
+                            frame,
+                            time,
+                            (**m).clone(),
+                        ));
+                    }
+                    if self.metrics.contains(&crate::stream::MetricsFormat::Jsonl)
+                        && let Err(e) = self.json_line(name, frame, time, m)
+                    {
+                        failed.push(e);
+                    }
+                }
                 _ => {}
             }
         }
@@ -361,6 +613,47 @@ impl FrameEmitter {
         } else {
             Err(failed.join("\n"))
         }
+    }
+
+    fn json_line(
+        &mut self,
+        name: &str,
+        frame: i64,
+        time: f64,
+        metrics: &crate::value::Metrics,
+    ) -> Result<(), String> {
+        use std::io::Write;
+        if !self.lines.contains_key(name) {
+            let path = self.dir.join(format!("{name}.jsonl"));
+            let temp = self
+                .dir
+                .join(format!(".{name}.jsonl.{}.part", std::process::id()));
+            let file =
+                std::fs::File::create(&temp).map_err(|e| format!("{}: {e}", temp.display()))?;
+            self.lines.insert(
+                name.to_string(),
+                JsonLines {
+                    temp,
+                    path,
+                    out: std::io::BufWriter::new(file),
+                },
+            );
+        }
+        let number = |x: f64| {
+            serde_json::Number::from_f64(x)
+                .map_or(serde_json::Value::Null, serde_json::Value::Number)
+        };
+        let mut object = serde_json::Map::new();
+        object.insert("frame".into(), serde_json::Value::from(frame));
+        object.insert("time_s".into(), number(time));
+        for (k, v) in metrics {
+            object.insert(k.clone(), number(*v));
+        }
+        let line = serde_json::Value::Object(object).to_string();
+        let Some(file) = self.lines.get_mut(name) else {
+            return Err(format!("{name}.jsonl is not open"));
+        };
+        writeln!(file.out, "{line}").map_err(|e| format!("{}: {e}", file.path.display()))
     }
 
     /// Finishes the animations and tables; returns every file written.
@@ -379,10 +672,33 @@ impl FrameEmitter {
                 Err(e) => failed.push(format!("{}: {e}", path.display())),
             }
         }
+        for (_, lines) in std::mem::take(&mut self.lines) {
+            let JsonLines { temp, path, out } = lines;
+            let done = out
+                .into_inner()
+                .map_err(|e| e.error().to_string())
+                .and_then(|f| f.sync_all().map_err(|e| e.to_string()))
+                .and_then(|()| std::fs::rename(&temp, &path).map_err(|e| e.to_string()));
+            match done {
+                Ok(()) => self.written.push(path),
+                Err(e) => {
+                    let _ = std::fs::remove_file(&temp);
+                    failed.push(format!("{}: {e}", path.display()));
+                }
+            }
+        }
         if failed.is_empty() {
-            Ok(self.written)
+            Ok(std::mem::take(&mut self.written))
         } else {
             Err(failed.join("\n"))
+        }
+    }
+}
+
+impl Drop for FrameEmitter {
+    fn drop(&mut self) {
+        for lines in self.lines.values() {
+            let _ = std::fs::remove_file(&lines.temp);
         }
     }
 }

@@ -48,6 +48,9 @@ pub struct GraphSpec {
     /// The `animation` section as written (frames, rate, parameter tracks), read by
     /// [`crate::timeline`]; only a top-level graph may have one.
     pub animation: Option<Spanned<RonValue>>,
+    /// The `stream` section as written (queue capacity, drop policy, pacing), read by
+    /// [`crate::stream`]; only a top-level graph may have one.
+    pub stream: Option<Spanned<RonValue>>,
     /// Span of the whole document.
     pub span: Span,
 }
@@ -119,7 +122,7 @@ impl InputRef {
     }
 }
 
-const GRAPH_FIELDS: [&str; 7] = [
+const GRAPH_FIELDS: [&str; 8] = [
     "name",
     "description",
     "inputs",
@@ -127,6 +130,7 @@ const GRAPH_FIELDS: [&str; 7] = [
     "outputs",
     "plugins",
     "animation",
+    "stream",
 ];
 const NODE_FIELDS: [&str; 3] = ["op", "inputs", "params"];
 
@@ -146,6 +150,7 @@ pub fn graph_from_ron(
         outputs: Vec::new(),
         plugins: Vec::new(),
         animation: None,
+        stream: None,
         span: doc.span,
     };
     let mut saw_nodes = false;
@@ -157,6 +162,7 @@ pub fn graph_from_ron(
             "outputs" => spec.outputs = string_map(source, value, "`outputs`", diags),
             "plugins" => spec.plugins = string_list(source, value, "`plugins`", diags),
             "animation" => spec.animation = Some(value.clone()),
+            "stream" => spec.stream = Some(value.clone()),
             "nodes" => {
                 saw_nodes = true;
                 spec.nodes = nodes(source, value, diags);

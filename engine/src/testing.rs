@@ -103,3 +103,50 @@ pub fn run_animated_graph(
         .map(|(name, ty, values)| (name, crate::value::Value::list(ty, values)))
         .collect())
 }
+
+/// Streams a graph file with a `stream` section and returns every output in declaration
+/// order: each streamed output as the list of its per-frame values (what a batch run gives),
+/// the others as they are. With `threads` workers; `--set`-style overrides.
+pub fn run_stream_graph(
+    registry: &Registry,
+    path: impl AsRef<Path>,
+    threads: usize,
+    overrides: &[&str],
+) -> Result<Vec<(String, crate::value::Value)>, String> {
+    let overrides = overrides
+        .iter()
+        .map(|o| Override::parse(o).map_err(|d| d.to_string()))
+        .collect::<Result<Vec<_>, _>>()?;
+    let (graph, spec) = crate::stream::load_streamed_file(registry, path.as_ref(), &overrides)
+        .map_err(|d| d.to_string())?;
+    let spec =
+        spec.ok_or_else(|| format!("{} has no `stream` section", path.as_ref().display()))?;
+    let options = RunOptions {
+        threads,
+        ..RunOptions::default()
+    };
+    let mut columns: Vec<(String, Vec<crate::value::Value>)> = Vec::new();
+    let report = crate::stream::run_stream(&graph, &spec, &options, |frame| {
+        for (name, value) in &frame.outputs {
+            match columns.iter_mut().find(|(n, _)| n == name) {
+                Some((_, values)) => values.push(value.clone()),
+                None => columns.push((name.clone(), vec![value.clone()])),
+            }
+        }
+        Ok(())
+    })
+    .map_err(|e| e.to_string())?;
+    let mut out = Vec::new();
+    for o in &graph.outputs {
+        if let Some((_, values)) = columns.iter().find(|(n, _)| n == &o.name) {
+            let element = o.ty.element().cloned().unwrap_or(o.ty.clone());
+            out.push((
+                o.name.clone(),
+                crate::value::Value::list(element, values.clone()),
+            ));
+        } else if let Some((_, v)) = report.outputs.iter().find(|(n, _)| n == &o.name) {
+            out.push((o.name.clone(), v.clone()));
+        }
+    }
+    Ok(out)
+}

@@ -420,7 +420,7 @@ fn parse_timeline(
                 )),
             },
             "tracks" => spec.tracks = parse_tracks(source, value, diags),
-            "encode" => spec.encode = parse_encode(source, value, diags),
+            "encode" => spec.encode = parse_encode(source, value, Code::Animation, diags),
             other => diags.push(unknown_field(
                 source,
                 key,
@@ -444,7 +444,7 @@ fn parse_timeline(
     (diags.0.len() == before).then_some(spec)
 }
 
-fn number(v: &RonValue) -> Option<f64> {
+pub(crate) fn number(v: &RonValue) -> Option<f64> {
     match v {
         RonValue::Int(i) => Some(*i as f64),
         RonValue::Float(f) => Some(*f),
@@ -452,7 +452,7 @@ fn number(v: &RonValue) -> Option<f64> {
     }
 }
 
-fn describe(v: &RonValue) -> String {
+pub(crate) fn describe(v: &RonValue) -> String {
     match v {
         RonValue::Int(i) => format!("`{i}`"),
         RonValue::Float(f) => format!("`{f}`"),
@@ -461,7 +461,7 @@ fn describe(v: &RonValue) -> String {
     }
 }
 
-fn key_string(
+pub(crate) fn key_string(
     source: &Arc<SourceFile>,
     key: &Spanned<RonValue>,
     what: &str,
@@ -544,11 +544,15 @@ fn parse_tracks(
     out
 }
 
-fn parse_encode(
+pub(crate) fn parse_encode(
     source: &Arc<SourceFile>,
     value: &Spanned<RonValue>,
+    code: Code,
     diags: &mut Diagnostics,
 ) -> BTreeMap<String, Vec<Encoding>> {
+    let animation_diag = |source: &Arc<SourceFile>, span: Span, message: String, label: &str| {
+        Diagnostic::at(code, source, span, message).label(label)
+    };
     let mut out = BTreeMap::new();
     let entries = match &value.value {
         RonValue::Map(entries) => entries,

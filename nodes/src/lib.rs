@@ -106,6 +106,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<video::horn_schunck::FlowHornSchunck>()?;
     registry.register::<video::dense_lk::FlowLk>()?;
     registry.register::<analyze::stats::Stats>()?;
+    registry.register::<analyze::running_stats::RunningStatsOp>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<analyze::depth_agreement::DepthAgreement>()?;
     registry.register::<analyze::evaluate::Evaluate>()?;

@@ -8,4 +8,5 @@ pub mod match_accuracy;
 pub mod quality;
 pub mod reconstruction_error;
 pub mod reconstruction_points;
+pub mod running_stats;
 pub mod stats;

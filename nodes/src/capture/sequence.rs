@@ -4,7 +4,9 @@ use std::cmp::Ordering;
 use std::path::{Path, PathBuf};
 
 use ocellus_engine::image_io::{DecodeLimits, ImageFormat, read_image};
-use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
+use ocellus_engine::op::{
+    FrameSource, Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext,
+};
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::Value;
@@ -24,6 +26,8 @@ params! {
         step: u32 = 1 => [min = 1],
         /// Most frames taken; None (the default) takes all.
         limit: Option<u32> = None => [min = 1],
+        /// Frame rate of the sequence: in a stream, frame k is stamped k / fps seconds.
+        fps: f64 = 30.0 => [min = 0.001, max = 1000000.0, unit = "frames/s"],
     }
 }
 
@@ -58,7 +62,10 @@ beyond the matches), or a file cannot be read or decoded (naming it).
 Caching: the fingerprint covers the selected file names and every selected file's content,
 so the cache notices renamed, added, removed or rewritten frames.
 
-Every frame is held in memory at once.
+A batch run holds every frame in memory at once. In a graph with a `stream` section the
+node is a source: frames are decoded one at a time as the pipeline asks for them (frame k
+stamped k / `fps` s), so memory does not grow with the sequence; `count` is known before the
+first frame.
 
 Example:
     "frames": (op: "capture.sequence", params: (path: "shots/img_*.png", step: 2, limit: 10)),
@@ -74,13 +81,15 @@ Example:
                 "frames",
                 PortType::Image.list_of(),
                 "The decoded frames, in natural file-name order.",
-            ),
+            )
+            .per_frame(),
             PortSpec::new("count", PortType::Integer, "Number of frames."),
             PortSpec::new(
                 "names",
                 PortType::Text.list_of(),
                 "The file name (without its folder) of each frame, in the order of `frames`.",
-            ),
+            )
+            .per_frame(),
         ]
     }
 
@@ -90,6 +99,9 @@ Example:
         }
         if params.step == 0 {
             return Err("`step` must be at least 1".into());
+        }
+        if !(params.fps.is_finite() && params.fps > 0.0) {
+            return Err("`fps` must be a positive number".into());
         }
         if params.limit == Some(0) {
             return Err("`limit` must be at least 1".into());
@@ -124,12 +136,7 @@ impl Operator for Sequence {
         let count = frames.len() as i64;
         let names = files
             .iter()
-            .map(|path| {
-                let name = path
-                    .file_name()
-                    .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
-                Value::Text(name.into())
-            })
+            .map(|path| Value::Text(file_name(path).into()))
             .collect();
         Ok(Outputs::new()
             .with("frames", Value::list(PortType::Image, frames))
@@ -149,6 +156,57 @@ impl Operator for Sequence {
         }
         Ok(ocellus_engine::cache::content_hash(&all).to_vec())
     }
+
+    fn frame_source(
+        &self,
+        _ctx: &RunContext,
+        _inputs: &Inputs<'_>,
+    ) -> Option<Result<Box<dyn FrameSource>, OpError>> {
+        Some(self.selected().map(|files| {
+            Box::new(SequenceSource {
+                files,
+                fps: self.params.fps,
+            }) as Box<dyn FrameSource>
+        }))
+    }
+}
+
+/// `capture.sequence` as a stream source: one file decoded per frame.
+struct SequenceSource {
+    files: Vec<PathBuf>,
+    fps: f64,
+}
+
+impl FrameSource for SequenceSource {
+    fn frames(&self) -> usize {
+        self.files.len()
+    }
+
+    fn timestamp_us(&self, index: usize) -> i64 {
+        (index as f64 * 1e6 / self.fps).round() as i64
+    }
+
+    fn frame(&mut self, _ctx: &RunContext, index: usize) -> Result<Outputs, OpError> {
+        let path = self
+            .files
+            .get(index)
+            .ok_or_else(|| OpError::failed(format!("no frame {index}")))?;
+        let image = read_image(path, &DecodeLimits::default())
+            .map_err(|e| OpError::failed(format!("frame {index}: {e}")))?;
+        Ok(Outputs::new()
+            .with("frames", Value::image(image))
+            .with("names", Value::Text(file_name(path).into())))
+    }
+
+    fn statics(&mut self, _ctx: &RunContext) -> Result<Outputs, OpError> {
+        Ok(Outputs::new().with("count", Value::Integer(self.files.len() as i64)))
+    }
+}
+
+/// The file name of `path` without its folder (empty when it has none).
+fn file_name(path: &Path) -> String {
+    path.file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned())
 }
 
 impl Sequence {
@@ -346,6 +404,7 @@ mod tests {
             start,
             step,
             limit,
+            fps: 30.0,
         })
         .unwrap()
     }
@@ -447,6 +506,40 @@ mod tests {
             natural_cmp("18446744073709551616000", "9"),
             Ordering::Greater
         );
+    }
+
+    #[test]
+    fn as_a_stream_source_it_decodes_the_same_frames_one_at_a_time() {
+        let dir = TempDir::new("stream");
+        for k in [3u8, 1, 2, 10] {
+            write_image(&dir.0.join(format!("f{k}.png")), &frame(k)).unwrap();
+        }
+        let sequence = op(dir.0.join("f*.png"), 1, 1, None);
+        let mut source = sequence
+            .frame_source(&ctx(), &Inputs::new(&[], &[]))
+            .unwrap()
+            .unwrap();
+        assert_eq!(source.frames(), 3);
+        // 30 fps: frame k at k/30 s.
+        assert_eq!(
+            (0..3).map(|k| source.timestamp_us(k)).collect::<Vec<_>>(),
+            [0, 33_333, 66_667]
+        );
+        let statics = source.statics(&ctx()).unwrap();
+        assert_eq!(statics.get("count"), Some(&Value::Integer(3)));
+        let mut batch = sequence.run(&ctx(), &Inputs::new(&[], &[])).unwrap();
+        let Some(Value::List(frames)) = batch.take("frames") else {
+            panic!("expected frames");
+        };
+        let Some(Value::List(names)) = batch.take("names") else {
+            panic!("expected names");
+        };
+        for k in 0..3 {
+            let mut one = source.frame(&ctx(), k).unwrap();
+            assert_eq!(one.take("frames").as_ref(), frames.items.get(k));
+            assert_eq!(one.take("names").as_ref(), names.items.get(k));
+        }
+        assert!(source.frame(&ctx(), 3).is_err());
     }
 
     #[test]
@@ -579,6 +672,7 @@ mod tests {
             start: 0,
             step,
             limit,
+            fps: 30.0,
         };
         assert!(Sequence::new(p("frames/*.png", 1, None)).is_ok());
         assert!(Sequence::new(p("", 1, None)).is_err());

@@ -13,7 +13,10 @@
 //! updated in fixed-size pixel bands in parallel, each pixel by the same arithmetic whatever the
 //! thread, so masks and background are bit-identical for any thread count.
 
-use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
+use ocellus_engine::op::{
+    Inputs, Op, OpError, Operator, Outputs, Packet, PortSpec, RunContext, SequenceState,
+    run_sequence_batch,
+};
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Depth, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -191,6 +194,10 @@ Differences from OpenCV: `cv::bgsegm::BackgroundSubtractorMOG` (KaewTraKulPong &
 the same match/update structure but a fixed initial weight and its own warm-up; MOG2 adapts the
 number of Gaussians and marks shadows. No shadow detection here.
 
+In a stream the model is the node's state: each frame is classified and learned as it
+arrives (`masks`, `scores` per frame), `background` is the model after the last frame —
+the same values as a batch run over the list.
+
 Example:
     "fg": (op: "segment.background", inputs: { "frames": "clip.frames" }, params: (method: "mog", learning_rate: 0.01)),
 "#;
@@ -200,7 +207,8 @@ Example:
             "frames",
             PortType::Image.list_of(),
             "Frames in time order, all of one size and pixel format (gray/RGB/RGBA, u8/u16/f32).",
-        )]
+        )
+        .per_frame()]
     }
 
     fn outputs() -> Vec<PortSpec> {
@@ -209,7 +217,8 @@ Example:
                 "masks",
                 PortType::Image.list_of(),
                 "One u8 gray mask per frame: 255 foreground, 0 background.",
-            ),
+            )
+            .per_frame(),
             PortSpec::new(
                 "background",
                 PortType::Image,
@@ -221,7 +230,8 @@ Example:
                 "One gray f32 image per frame: the RMS over channels of |frame − background| in \
                  8-bit gray levels, against the background before the frame's update (0 for the \
                  first frame). A graded foreground score for ROC sweeps (`analyze.roc`).",
-            ),
+            )
+            .per_frame(),
         ]
     }
 
@@ -250,58 +260,63 @@ Example:
 }
 
 impl Operator for Background {
-    fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
-        let list = match inputs.require("frames")? {
-            Value::List(list) => list,
-            other => {
-                return Err(OpError::input(
-                    "frames",
-                    format!("expected List<Image>, got {}", other.port_type()),
-                ));
+    fn run(&self, ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
+        run_sequence_batch(self, ctx, inputs, &Self::outputs())
+    }
+
+    fn sequence(
+        &self,
+        _ctx: &RunContext,
+        _inputs: &Inputs<'_>,
+    ) -> Option<Result<Box<dyn SequenceState>, OpError>> {
+        Some(
+            BackgroundSubtractor::new(self.config)
+                .map(|s| Box::new(BackgroundState(s)) as Box<dyn SequenceState>)
+                .map_err(|e| OpError::failed(format!("background model: {e}"))),
+        )
+    }
+}
+
+/// `segment.background` between frames: the model.
+struct BackgroundState(BackgroundSubtractor);
+
+impl SequenceState for BackgroundState {
+    fn push(
+        &mut self,
+        _ctx: &RunContext,
+        _packet: Packet,
+        inputs: &Inputs<'_>,
+    ) -> Result<Outputs, OpError> {
+        let frame = inputs.image("frames")?;
+        let subtractor = &mut self.0;
+        let score = match subtractor.background() {
+            Some(Ok(background)) if background.channels() == frame.channels() => {
+                background_distance(frame, &background)
             }
-        };
-        if list.items.is_empty() {
-            return Err(OpError::input("frames", "needs at least one frame"));
+            Some(Err(e)) => return Err(OpError::failed(format!("background image: {e}"))),
+            _ => Image::from_f32(
+                frame.width(),
+                frame.height(),
+                Channels::Gray,
+                vec![0.0; frame.width() * frame.height()],
+            )
+            .map_err(|e| e.to_string()),
         }
-        let mut subtractor = BackgroundSubtractor::new(self.config)
-            .map_err(|e| OpError::failed(format!("background model: {e}")))?;
-        let mut masks = Vec::with_capacity(list.items.len());
-        let mut scores = Vec::with_capacity(list.items.len());
-        for (k, item) in list.items.iter().enumerate() {
-            let Value::Image(frame) = item else {
-                return Err(OpError::input(
-                    "frames",
-                    format!("element {k} is a {}, not an Image", item.port_type()),
-                ));
-            };
-            let score = match subtractor.background() {
-                Some(Ok(background)) if background.channels() == frame.channels() => {
-                    background_distance(frame, &background)
-                }
-                Some(Err(e)) => return Err(OpError::failed(format!("background image: {e}"))),
-                _ => Image::from_f32(
-                    frame.width(),
-                    frame.height(),
-                    Channels::Gray,
-                    vec![0.0; frame.width() * frame.height()],
-                )
-                .map_err(|e| e.to_string()),
-            }
-            .map_err(|e| OpError::failed(format!("score image: {e}")))?;
-            let mask = subtractor
-                .apply(frame)
-                .map_err(|e| OpError::input("frames", format!("frame {k}: {e}")))?;
-            masks.push(Value::image(mask));
-            scores.push(Value::image(score));
-        }
-        let background = subtractor
-            .background()
-            .ok_or_else(|| OpError::failed("no background model"))?
-            .map_err(|e| OpError::failed(format!("background image: {e}")))?;
+        .map_err(|e| OpError::failed(format!("score image: {e}")))?;
+        let mask = subtractor
+            .apply(frame)
+            .map_err(|e| OpError::input("frames", e))?;
         Ok(Outputs::new()
-            .with("masks", Value::list(PortType::Image, masks))
-            .with("background", Value::image(background))
-            .with("scores", Value::list(PortType::Image, scores)))
+            .with("masks", Value::image(mask))
+            .with("scores", Value::image(score)))
+    }
+
+    fn finish(&mut self, _ctx: &RunContext) -> Result<Outputs, OpError> {
+        let background = match self.0.background() {
+            Some(b) => b.map_err(|e| OpError::failed(format!("background image: {e}")))?,
+            None => return Err(OpError::input("frames", "needs at least one frame")),
+        };
+        Ok(Outputs::new().with("background", Value::image(background)))
     }
 }
 

@@ -6,7 +6,10 @@
 use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector};
-use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
+use ocellus_engine::op::{
+    Inputs, Op, OpError, Operator, Outputs, Packet, PortSpec, RunContext, SequenceState,
+    run_sequence_batch,
+};
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Matrix, Metrics, Value};
 use ocellus_engine::{param_enum, params};
@@ -70,17 +73,34 @@ Outputs: `states`, N × n (filtered or smoothed state per frame); `positions`, N
 `mean_innovation_chi2` (mean squared Mahalanobis distance of accepted measurements; ≈ 2 when the
 noise levels are right).
 
+The track comes either as `measurements` (a whole N × 2 matrix) or as `points` (per frame a
+Points2D whose first point is the measurement, e.g. a detector mapped over the frames). With
+`points` the filter is a stateful operator: in a stream it runs the recursion frame by frame
+(`estimates` per frame, the filtered position), and `states`, `positions` and `metrics` come
+after the last frame (smoothed there when `smooth`) — the same values as on a list.
+
 Example:
     "kf": (op: "video.kalman_filter", inputs: { "measurements": "track.positions" },
            params: (model: "constant_velocity", measurement_std: 2.0, gate_chi2: Some(9.21))),
 "#;
 
     fn inputs() -> Vec<PortSpec> {
-        vec![PortSpec::new(
-            "measurements",
-            PortType::Matrix,
-            "N × 2 positions, one row per frame; NaN rows are missing.",
-        )]
+        vec![
+            PortSpec::new(
+                "measurements",
+                PortType::Matrix,
+                "N × 2 positions, one row per frame; NaN rows are missing.",
+            )
+            .optional(),
+            PortSpec::new(
+                "points",
+                PortType::Points2D.list_of(),
+                "Instead of `measurements`: per frame, the measured position as the first \
+                 point (no point or NaN: missing). Streams frame by frame.",
+            )
+            .optional()
+            .per_frame(),
+        ]
     }
 
     fn outputs() -> Vec<PortSpec> {
@@ -92,6 +112,13 @@ Example:
                 PortType::Metrics,
                 "Counts and innovation statistics.",
             ),
+            PortSpec::new(
+                "estimates",
+                PortType::Points2D.list_of(),
+                "Per frame: the filtered position (never smoothed) as one point; no point \
+                 before the first measurement.",
+            )
+            .per_frame(),
         ]
     }
 
@@ -112,61 +139,134 @@ Example:
 }
 
 impl Operator for KalmanTrack {
-    fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
-        let p = &self.params;
-        let (frames, rows) = track_measurements(inputs)?;
-        let n_state = match p.model {
+    fn run(&self, ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
+        match (inputs.get("measurements"), inputs.get("points")) {
+            (Some(_), Some(_)) => Err(OpError::input(
+                "points",
+                "connect `measurements` or `points`, not both",
+            )),
+            (Some(_), None) => {
+                let (_, rows) = track_measurements(inputs)?;
+                let mut state = KalmanState::new(self.params.clone());
+                let mut estimates = Vec::with_capacity(rows.len());
+                for (k, row) in rows.iter().enumerate() {
+                    let e = state
+                        .push(row.as_ref())
+                        .map_err(|e| OpError::failed(format!("frame {k}: {e}")))?;
+                    estimates.push(e);
+                }
+                let mut out = state.finish()?;
+                out.set("estimates", Value::list(PortType::Points2D, estimates));
+                Ok(out)
+            }
+            (None, _) => run_sequence_batch(self, ctx, inputs, &Self::outputs()),
+        }
+    }
+
+    fn sequence(
+        &self,
+        _ctx: &RunContext,
+        inputs: &Inputs<'_>,
+    ) -> Option<Result<Box<dyn SequenceState>, OpError>> {
+        if inputs.get("measurements").is_some() {
+            return Some(Err(OpError::input(
+                "measurements",
+                "a streamed track reads `points`; leave `measurements` unconnected",
+            )));
+        }
+        Some(Ok(Box::new(KalmanState::new(self.params.clone()))))
+    }
+}
+
+/// The filter between frames: the recursion so far and what the outputs need at the end.
+struct KalmanState {
+    params: KalmanParams,
+    n_state: usize,
+    /// Frames seen, and the first one with a measurement.
+    frames: usize,
+    first: Option<usize>,
+    filter: Option<KalmanFilter>,
+    steps: Vec<FilteredStep>,
+    updates: usize,
+    rejected: usize,
+    missing: usize,
+    chi2_sum: f64,
+    log_likelihood: f64,
+}
+
+impl KalmanState {
+    fn new(params: KalmanParams) -> KalmanState {
+        let n_state = match params.model {
             MotionModel::ConstantVelocity => 4,
             MotionModel::ConstantAcceleration => 6,
         };
-        let mut states = vec![f64::NAN; frames * n_state];
-        let mut metrics = Metrics::new();
-        let (mut updates, mut rejected, mut chi2_sum, mut log_likelihood) =
-            (0usize, 0usize, 0.0, 0.0);
-        let missing = rows.iter().filter(|r| r.is_none()).count();
-        if let Some(first) = rows.iter().position(Option::is_some) {
-            let mut x0 = DVector::zeros(n_state);
-            let mut p0 = DMatrix::zeros(n_state, n_state);
-            if let Some(Some(z0)) = rows.get(first) {
+        KalmanState {
+            params,
+            n_state,
+            frames: 0,
+            first: None,
+            filter: None,
+            steps: Vec::new(),
+            updates: 0,
+            rejected: 0,
+            missing: 0,
+            chi2_sum: 0.0,
+            log_likelihood: 0.0,
+        }
+    }
+
+    /// One frame's measurement (`None`: missing); returns the filtered position (no point
+    /// before the first measurement).
+    fn push(&mut self, row: Option<&DVector<f64>>) -> Result<Value, OpError> {
+        let p = &self.params;
+        self.frames += 1;
+        if row.is_none() {
+            self.missing += 1;
+        }
+        let fail = |e: super::filters::FilterError| OpError::failed(e.to_string());
+        match (&mut self.filter, row) {
+            (None, None) => return Ok(Value::Points2D(Arc::new(Vec::new()))),
+            (None, Some(z0)) => {
+                let mut x0 = DVector::zeros(self.n_state);
+                let mut p0 = DMatrix::zeros(self.n_state, self.n_state);
                 x0[0] = z0[0];
                 x0[1] = z0[1];
-            }
-            for k in 0..n_state {
-                p0[(k, k)] = if k < 2 {
-                    p.measurement_std.powi(2)
-                } else {
-                    p.initial_velocity_std.powi(2)
+                for k in 0..self.n_state {
+                    p0[(k, k)] = if k < 2 {
+                        p.measurement_std.powi(2)
+                    } else {
+                        p.initial_velocity_std.powi(2)
+                    };
+                }
+                let built = match p.model {
+                    MotionModel::ConstantVelocity => KalmanFilter::constant_velocity_2d(
+                        p.dt_s,
+                        p.process_std,
+                        p.measurement_std,
+                        x0,
+                        p0,
+                    ),
+                    MotionModel::ConstantAcceleration => KalmanFilter::constant_acceleration_2d(
+                        p.dt_s,
+                        p.process_std,
+                        p.measurement_std,
+                        x0,
+                        p0,
+                    ),
                 };
+                let kf = built.map_err(fail)?;
+                // The first measurement initialises the state: an update-free step.
+                self.steps.push(FilteredStep {
+                    predicted_state: kf.state().clone(),
+                    predicted_covariance: kf.covariance().clone(),
+                    filtered_state: kf.state().clone(),
+                    filtered_covariance: kf.covariance().clone(),
+                    innovation: None,
+                });
+                self.first = Some(self.frames - 1);
+                self.filter = Some(kf);
             }
-            let built = match p.model {
-                MotionModel::ConstantVelocity => KalmanFilter::constant_velocity_2d(
-                    p.dt_s,
-                    p.process_std,
-                    p.measurement_std,
-                    x0,
-                    p0,
-                ),
-                MotionModel::ConstantAcceleration => KalmanFilter::constant_acceleration_2d(
-                    p.dt_s,
-                    p.process_std,
-                    p.measurement_std,
-                    x0,
-                    p0,
-                ),
-            };
-            let mut kf = built.map_err(|e| OpError::failed(e.to_string()))?;
-            let transition = kf.transition().clone();
-            let fail = |e: super::filters::FilterError| OpError::failed(e.to_string());
-            let mut steps: Vec<FilteredStep> = Vec::with_capacity(frames - first);
-            // The first measurement initialises the state: record it as an update-free step.
-            steps.push(FilteredStep {
-                predicted_state: kf.state().clone(),
-                predicted_covariance: kf.covariance().clone(),
-                filtered_state: kf.state().clone(),
-                filtered_covariance: kf.covariance().clone(),
-                innovation: None,
-            });
-            for row in rows.iter().skip(first + 1) {
+            (Some(kf), row) => {
                 kf.predict().map_err(fail)?;
                 let (predicted_state, predicted_covariance) =
                     (kf.state().clone(), kf.covariance().clone());
@@ -175,18 +275,18 @@ impl Operator for KalmanTrack {
                     (Some(m), Some(gate)) => {
                         let i = kf.update_gated(m, gate).map_err(fail)?;
                         if i.is_none() {
-                            rejected += 1;
+                            self.rejected += 1;
                         }
                         i
                     }
                     (Some(m), None) => Some(kf.update(m).map_err(fail)?),
                 };
                 if let Some(i) = &innovation {
-                    updates += 1;
-                    chi2_sum += i.mahalanobis_squared;
-                    log_likelihood += i.log_likelihood;
+                    self.updates += 1;
+                    self.chi2_sum += i.mahalanobis_squared;
+                    self.log_likelihood += i.log_likelihood;
                 }
-                steps.push(FilteredStep {
+                self.steps.push(FilteredStep {
                     predicted_state,
                     predicted_covariance,
                     filtered_state: kf.state().clone(),
@@ -194,9 +294,22 @@ impl Operator for KalmanTrack {
                     innovation,
                 });
             }
-            let estimates: Vec<DVector<f64>> = if p.smooth {
-                rts_smooth(&steps, &transition)
-                    .map_err(fail)?
+        }
+        let x = self.filter.as_ref().map(|kf| kf.state());
+        Ok(Value::Points2D(Arc::new(
+            x.map(|x| vec![[x[0], x[1]]]).unwrap_or_default(),
+        )))
+    }
+
+    /// `states`, `positions` (smoothed when asked) and `metrics`.
+    fn finish(&mut self) -> Result<Outputs, OpError> {
+        let (frames, n_state) = (self.frames, self.n_state);
+        let mut states = vec![f64::NAN; frames * n_state];
+        if let (Some(first), Some(kf)) = (self.first, &self.filter) {
+            let steps = std::mem::take(&mut self.steps);
+            let estimates: Vec<DVector<f64>> = if self.params.smooth {
+                rts_smooth(&steps, kf.transition())
+                    .map_err(|e| OpError::failed(e.to_string()))?
                     .into_iter()
                     .map(|s| s.state)
                     .collect()
@@ -208,15 +321,52 @@ impl Operator for KalmanTrack {
                 states[row * n_state..(row + 1) * n_state].copy_from_slice(x.as_slice());
             }
         }
+        let mut metrics = Metrics::new();
         metrics.insert("frames".into(), frames as f64);
-        metrics.insert("updates".into(), updates as f64);
-        metrics.insert("rejected".into(), rejected as f64);
-        metrics.insert("missing".into(), missing as f64);
-        metrics.insert("log_likelihood".into(), log_likelihood);
-        if updates > 0 {
-            metrics.insert("mean_innovation_chi2".into(), chi2_sum / updates as f64);
+        metrics.insert("updates".into(), self.updates as f64);
+        metrics.insert("rejected".into(), self.rejected as f64);
+        metrics.insert("missing".into(), self.missing as f64);
+        metrics.insert("log_likelihood".into(), self.log_likelihood);
+        if self.updates > 0 {
+            metrics.insert(
+                "mean_innovation_chi2".into(),
+                self.chi2_sum / self.updates as f64,
+            );
         }
         track_outputs(frames, n_state, states, metrics)
+    }
+}
+
+impl SequenceState for KalmanState {
+    fn push(
+        &mut self,
+        _ctx: &RunContext,
+        _packet: Packet,
+        inputs: &Inputs<'_>,
+    ) -> Result<Outputs, OpError> {
+        let row = frame_point(inputs)?;
+        let estimate = KalmanState::push(self, row.as_ref())?;
+        Ok(Outputs::new().with("estimates", estimate))
+    }
+
+    fn finish(&mut self, _ctx: &RunContext) -> Result<Outputs, OpError> {
+        KalmanState::finish(self)
+    }
+}
+
+/// This frame's measurement from the `points` input: its first point, `None` when it has no
+/// point or a NaN coordinate; an infinite coordinate is an input error.
+pub(super) fn frame_point(inputs: &Inputs<'_>) -> Result<Option<DVector<f64>>, OpError> {
+    let Value::Points2D(points) = inputs.require("points")? else {
+        return Err(OpError::input("points", "expected Points2D"));
+    };
+    match points.first() {
+        None => Ok(None),
+        Some(p) if p.iter().any(|v| v.is_infinite()) => {
+            Err(OpError::input("points", "infinite coordinate"))
+        }
+        Some(p) if p.iter().any(|v| v.is_nan()) => Ok(None),
+        Some(p) => Ok(Some(DVector::from_column_slice(p))),
     }
 }
 
