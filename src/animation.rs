@@ -30,16 +30,9 @@ pub fn run_animated(
     for repeat in 0..args.repeat {
         let last_repeat = repeat + 1 == args.repeat;
         let options = RunOptions {
-            threads,
-            outputs: args.output.clone(),
-            cache_dir: if args.repeat > 1 {
-                None
-            } else {
-                args.cache.clone()
-            },
-            progress: None,
             // A fresh cache per repeat: `--repeat` times whole animations.
             memory_cache: Some(Arc::new(MemoryCache::new())),
+            ..args.options(threads)
         };
         let mut emitter = match (&args.emit, last_repeat) {
             (Some(dir), true) => {
@@ -167,12 +160,17 @@ pub fn timeline(
     path: &Path,
     set: &[String],
 ) -> Result<Option<Animated>, ocellus_engine::Diagnostics> {
-    let mut overrides = Vec::new();
-    for arg in set {
-        match ocellus_engine::Override::parse(arg) {
-            Ok(o) => overrides.push(o),
-            Err(d) => return Err(ocellus_engine::Diagnostics(vec![*d])),
-        }
-    }
+    let overrides = parse_overrides(set)?;
     ocellus_engine::timeline::load_animated_file(registry, path, &overrides).map(|(_, a)| a)
+}
+
+/// `--set` values, or the first malformed one's diagnostic.
+pub fn parse_overrides(
+    set: &[String],
+) -> Result<Vec<ocellus_engine::Override>, ocellus_engine::Diagnostics> {
+    set.iter()
+        .map(|arg| {
+            ocellus_engine::Override::parse(arg).map_err(|d| ocellus_engine::Diagnostics(vec![*d]))
+        })
+        .collect()
 }

@@ -110,6 +110,23 @@ pub struct RunArgs {
     pub cache: Option<PathBuf>,
 }
 
+impl RunArgs {
+    /// Run options for `threads` workers: the requested outputs, and the cache unless
+    /// `--repeat` measures computation (results are never reused between repeats).
+    pub fn options(&self, threads: usize) -> RunOptions {
+        RunOptions {
+            threads,
+            outputs: self.output.clone(),
+            cache_dir: if self.repeat > 1 {
+                None
+            } else {
+                self.cache.clone()
+            },
+            ..RunOptions::default()
+        }
+    }
+}
+
 /// Runs a parsed command line.
 pub fn dispatch(cli: Cli) -> ExitCode {
     let mut registry = match builtin_registry() {
@@ -380,16 +397,8 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
     for _ in 0..args.repeat {
         let progress = Progress::start();
         let options = RunOptions {
-            threads,
-            outputs: args.output.clone(),
-            // `--repeat` measures computation: results are never reused between repeats.
-            cache_dir: if args.repeat > 1 {
-                None
-            } else {
-                args.cache.clone()
-            },
             progress: Some(progress.callback()),
-            memory_cache: None,
+            ..args.options(threads)
         };
         let result = ocellus_engine::run(&graph, &options);
         progress.finish();

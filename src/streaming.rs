@@ -6,7 +6,7 @@ use std::process::ExitCode;
 
 use ocellus_engine::sequence_write::FrameEmitter;
 use ocellus_engine::stream::{StreamReport, StreamSpec, run_stream};
-use ocellus_engine::{Graph, Registry, RunOptions, Value};
+use ocellus_engine::{Graph, Registry, Value};
 
 use crate::cli::{EXIT_FAILED, EXIT_INVALID, RunArgs};
 use crate::report::render_bytes;
@@ -20,13 +20,7 @@ pub fn stream_spec(
     path: &Path,
     set: &[String],
 ) -> Result<Option<StreamSpec>, ocellus_engine::Diagnostics> {
-    let mut overrides = Vec::new();
-    for arg in set {
-        match ocellus_engine::Override::parse(arg) {
-            Ok(o) => overrides.push(o),
-            Err(d) => return Err(ocellus_engine::Diagnostics(vec![*d])),
-        }
-    }
+    let overrides = crate::animation::parse_overrides(set)?;
     ocellus_engine::stream::load_streamed_file(registry, path, &overrides).map(|(_, s)| s)
 }
 
@@ -45,17 +39,7 @@ pub fn run_streamed(args: &RunArgs, graph: &Graph, spec: &StreamSpec, threads: u
     let mut code = ExitCode::SUCCESS;
     for repeat in 0..args.repeat {
         let last_repeat = repeat + 1 == args.repeat;
-        let options = RunOptions {
-            threads,
-            outputs: args.output.clone(),
-            cache_dir: if args.repeat > 1 {
-                None
-            } else {
-                args.cache.clone()
-            },
-            progress: None,
-            memory_cache: None,
-        };
+        let options = args.options(threads);
         if let (Some(dir), true) = (&args.emit, last_repeat)
             && let Err(e) = std::fs::create_dir_all(dir)
         {

@@ -228,19 +228,7 @@ struct Plan {
 
 /// Runs a graph.
 pub fn run(graph: &Graph, options: &RunOptions) -> Result<RunReport, RunError> {
-    let threads = if options.threads == 0 {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    } else {
-        options.threads
-    };
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .thread_name(|i| format!("ocellus-{i}"))
-        .build()
-        .map_err(|e| RunError::Threads {
-            threads,
-            message: e.to_string(),
-        })?;
+    let (pool, threads) = thread_pool(options.threads)?;
     let cache = match &options.cache_dir {
         Some(dir) => Some(DiskCache::open(dir).map_err(|e| RunError::Cache {
             path: dir.clone(),
@@ -258,6 +246,24 @@ pub fn run(graph: &Graph, options: &RunOptions) -> Result<RunReport, RunError> {
         pool.install(|| execute(graph, &plan, caches, threads, options.progress.as_ref()));
     report.elapsed = start.elapsed();
     Ok(report)
+}
+
+/// The run's worker pool and its size: `threads` workers, 0 for every core.
+pub(crate) fn thread_pool(threads: usize) -> Result<(rayon::ThreadPool, usize), RunError> {
+    let threads = if threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        threads
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(|i| format!("ocellus-{i}"))
+        .build()
+        .map_err(|e| RunError::Threads {
+            threads,
+            message: e.to_string(),
+        })?;
+    Ok((pool, threads))
 }
 
 fn plan(graph: &Graph, selected: &[String], caches: Caches<'_>) -> Result<Plan, RunError> {

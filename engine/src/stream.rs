@@ -753,19 +753,7 @@ pub fn run_stream(
     mut on_frame: impl FnMut(&StreamFrame) -> Result<(), String>,
 ) -> Result<StreamReport, StreamError> {
     let plan = plan(graph, spec, &options.outputs).map_err(StreamError::Plan)?;
-    let threads = if options.threads == 0 {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    } else {
-        options.threads
-    };
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .thread_name(|i| format!("ocellus-{i}"))
-        .build()
-        .map_err(|e| RunError::Threads {
-            threads,
-            message: e.to_string(),
-        })?;
+    let (pool, threads) = crate::exec::thread_pool(options.threads)?;
     let n = graph.nodes.len();
 
     // 1. Static values the stream reads, and static graph outputs.
@@ -838,25 +826,14 @@ pub fn run_stream(
         threads,
         element,
     };
-    let whole_inputs =
-        |i: usize, values: &HashMap<PortRef, Value>| -> Result<Vec<Option<Value>>, String> {
-            let node = &graph.nodes[i];
-            let mut out = Vec::with_capacity(node.inputs.len());
-            for edge in &node.inputs {
-                out.push(match edge {
-                    None => None,
-                    Some(edge) => Some(whole_value(graph, edge, values)?),
-                });
-            }
-            Ok(out)
-        };
     let mut sources: HashMap<usize, Box<dyn FrameSource>> = HashMap::new();
     let mut states: HashMap<usize, Box<dyn SequenceState>> = HashMap::new();
     for i in 0..n {
         let node = &graph.nodes[i];
         match plan.class[i] {
             NodeClass::Source => {
-                let inputs = whole_inputs(i, &values).map_err(|m| node_error(graph, i, None, m))?;
+                let inputs = whole_inputs(graph, None, i, &values)
+                    .map_err(|m| node_error(graph, i, None, m))?;
                 let ctx = ctx_for(i, None);
                 let made = pool.install(|| {
                     catch_unwind(AssertUnwindSafe(|| {
@@ -891,13 +868,9 @@ pub fn run_stream(
                 sources.insert(i, source);
             }
             NodeClass::Sequence => {
-                let mut inputs = whole_inputs_static(graph, &plan, i, &values)
+                // The per-frame ports are the streamed ones: unset here.
+                let inputs = whole_inputs(graph, Some(&plan), i, &values)
                     .map_err(|m| node_error(graph, i, None, m))?;
-                for (slot, spec) in inputs.iter_mut().zip(&node.info.inputs) {
-                    if spec.per_frame {
-                        *slot = None;
-                    }
-                }
                 let ctx = ctx_for(i, None);
                 let made = pool.install(|| {
                     catch_unwind(AssertUnwindSafe(|| {
@@ -1082,7 +1055,8 @@ pub fn run_stream(
     }
     for i in (0..n).filter(|&i| plan.class[i] == NodeClass::Final) {
         let node = &graph.nodes[i];
-        let inputs = whole_inputs(i, &values).map_err(|m| node_error(graph, i, None, m))?;
+        let inputs =
+            whole_inputs(graph, None, i, &values).map_err(|m| node_error(graph, i, None, m))?;
         let ctx = ctx_for(i, None);
         let t0 = Instant::now();
         let result = pool
@@ -1170,10 +1144,11 @@ fn whole_value(
     }
 }
 
-/// The whole inputs of a stage node whose edges do not read streams (the others unset).
-fn whole_inputs_static(
+/// The whole value of every connected input of node `i`, from `values`; with a plan, the
+/// inputs that read a stream are left unset (a stage receives those per packet).
+fn whole_inputs(
     graph: &Graph,
-    plan: &StreamPlan,
+    streams: Option<&StreamPlan>,
     i: usize,
     values: &HashMap<PortRef, Value>,
 ) -> Result<Vec<Option<Value>>, String> {
@@ -1181,7 +1156,7 @@ fn whole_inputs_static(
     let mut out = Vec::with_capacity(node.inputs.len());
     for edge in &node.inputs {
         out.push(match edge {
-            Some(edge) if !edge.sources().any(|p| plan.is_streamed(p)) => {
+            Some(edge) if !streams.is_some_and(|p| edge.sources().any(|s| p.is_streamed(s))) => {
                 Some(whole_value(graph, edge, values)?)
             }
             _ => None,
@@ -1356,7 +1331,7 @@ impl Stage<'_> {
         let node = &self.graph.nodes[self.index];
         let mut heads: Vec<Option<Arc<FrameMsg>>> = vec![None; receivers.len()];
         // Whole values of the edges that do not read a stream, once.
-        let statics = match whole_inputs_static(self.graph, self.plan, self.index, self.values) {
+        let statics = match whole_inputs(self.graph, Some(self.plan), self.index, self.values) {
             Ok(s) => s,
             Err(m) => {
                 self.fail(None, m);

@@ -22,10 +22,7 @@ pub fn run_graph(
     threads: usize,
     overrides: &[&str],
 ) -> Result<RunReport, String> {
-    let overrides = overrides
-        .iter()
-        .map(|o| Override::parse(o).map_err(|d| d.to_string()))
-        .collect::<Result<Vec<_>, _>>()?;
+    let overrides = parse_overrides(overrides)?;
     let graph = load_graph(registry, path.as_ref(), &overrides).map_err(|d| d.to_string())?;
     let options = RunOptions {
         threads,
@@ -54,10 +51,7 @@ pub fn run_animated_graph(
     threads: usize,
     overrides: &[&str],
 ) -> Result<Vec<(String, crate::value::Value)>, String> {
-    let overrides = overrides
-        .iter()
-        .map(|o| Override::parse(o).map_err(|d| d.to_string()))
-        .collect::<Result<Vec<_>, _>>()?;
+    let overrides = parse_overrides(overrides)?;
     let (graph, animated) =
         crate::timeline::load_animated_file(registry, path.as_ref(), &overrides)
             .map_err(|d| d.to_string())?;
@@ -113,10 +107,7 @@ pub fn run_stream_graph(
     threads: usize,
     overrides: &[&str],
 ) -> Result<Vec<(String, crate::value::Value)>, String> {
-    let overrides = overrides
-        .iter()
-        .map(|o| Override::parse(o).map_err(|d| d.to_string()))
-        .collect::<Result<Vec<_>, _>>()?;
+    let overrides = parse_overrides(overrides)?;
     let (graph, spec) = crate::stream::load_streamed_file(registry, path.as_ref(), &overrides)
         .map_err(|d| d.to_string())?;
     let spec =
@@ -149,4 +140,12 @@ pub fn run_stream_graph(
         }
     }
     Ok(out)
+}
+
+/// `--set`-style overrides, or the first one's parse error as text.
+fn parse_overrides(overrides: &[&str]) -> Result<Vec<Override>, String> {
+    overrides
+        .iter()
+        .map(|o| Override::parse(o).map_err(|d| d.to_string()))
+        .collect()
 }

@@ -3,11 +3,14 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test code: a failed unwrap is a failed test
 
+mod common;
+
+use common::source;
+
 use std::sync::Arc;
 use std::sync::atomic::{AtomicI64, AtomicUsize, Ordering};
 use std::time::Duration;
 
-use ocellus_engine::diag::SourceFile;
 use ocellus_engine::op::{FrameSource, Op, Packet, SequenceState, run_sequence_batch};
 use ocellus_engine::stream::{NodeClass, StreamError, StreamFrame, load_streamed, run_stream};
 use ocellus_engine::{
@@ -285,60 +288,19 @@ impl SequenceState for CumSumState {
     }
 }
 
-/// Whole list → sum (a final node in a stream).
-struct Total;
-
-impl Op for Total {
-    type Params = ocellus_engine::NoParams;
-    const ID: &'static str = "s.total";
-    const SUMMARY: &'static str = "sum of a list";
-    const DOC: &'static str = "sum of a list";
-    fn inputs() -> Vec<PortSpec> {
-        vec![PortSpec::new(
-            "items",
-            PortType::Scalar.list_of(),
-            "numbers",
-        )]
-    }
-    fn outputs() -> Vec<PortSpec> {
-        vec![PortSpec::new("total", PortType::Scalar, "their sum")]
-    }
-    fn new(_: ocellus_engine::NoParams) -> Result<Self, String> {
-        Ok(Total)
-    }
-}
-
-impl Operator for Total {
-    fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
-        let Some(Value::List(list)) = inputs.get("items") else {
-            return Err(OpError::input("items", "not a list"));
-        };
-        let total = list
-            .items
-            .iter()
-            .map(|v| if let Value::Scalar(x) = v { *x } else { 0.0 })
-            .sum();
-        Ok(Outputs::new().with("total", Value::Scalar(total)))
-    }
-}
-
+/// The common test operators (`t.collect` sums a list) and the streaming ones above.
 fn registry() -> Registry {
-    let mut reg = Registry::new();
+    let (mut reg, _) = common::registry();
     reg.register::<Count>().unwrap();
     reg.register::<Square>().unwrap();
     reg.register::<Slow>().unwrap();
     reg.register::<Add2>().unwrap();
     reg.register::<CumSum>().unwrap();
-    reg.register::<Total>().unwrap();
     reg
 }
 
-fn source(text: &str) -> Arc<SourceFile> {
-    SourceFile::new("stream.ron", None, text)
-}
-
 fn load(text: &str) -> (ocellus_engine::Graph, ocellus_engine::stream::StreamSpec) {
-    match load_streamed(&registry(), &source(text), &[]) {
+    match load_streamed(&registry(), &source("stream.ron", text), &[]) {
         Ok((g, Some(s))) => (g, s),
         Ok((_, None)) => panic!("no stream section"),
         Err(d) => panic!("did not load:\n{d}"),
@@ -346,7 +308,7 @@ fn load(text: &str) -> (ocellus_engine::Graph, ocellus_engine::stream::StreamSpe
 }
 
 fn errors(text: &str) -> String {
-    match load_streamed(&registry(), &source(text), &[]) {
+    match load_streamed(&registry(), &source("stream.ron", text), &[]) {
         Ok(_) => panic!("loaded, but errors were expected"),
         Err(d) => {
             d.0.iter()
@@ -397,7 +359,7 @@ const PIPELINE: &str = r#"Graph(
         "scale": (op: "s.count", params: (frames: 1, offset: 3.0)),
         "sq": (op: "s.square", inputs: { "x": "src.values" }),
         "sum": (op: "s.cumsum", inputs: { "values": "sq.y", "scale": "scale.values[0]" }),
-        "total": (op: "s.total", inputs: { "items": "sq.y" }),
+        "total": (op: "t.collect", inputs: { "items": "sq.y" }),
         "last": (op: "s.square", inputs: { "x": "sq.y[-1]" }),
     },
     outputs: {

@@ -507,6 +507,75 @@ mod tests {
     }
 
     #[test]
+    fn per_frame_points_give_the_matrix_results_and_the_filtered_estimates() {
+        let (_, z) = track(60, true);
+        let params = KalmanParams {
+            measurement_std: 2.0,
+            gate_chi2: Some(9.21),
+            smooth: true,
+            ..KalmanParams::default()
+        };
+        let from_matrix = run(params.clone(), z.clone());
+        // The same track as one Points2D per frame (NaN rows: no point).
+        let points: Vec<Value> = z
+            .data
+            .chunks_exact(2)
+            .map(|r| {
+                let p = if r[0].is_nan() {
+                    vec![]
+                } else {
+                    vec![[r[0], r[1]]]
+                };
+                Value::Points2D(Arc::new(p))
+            })
+            .collect();
+        let op = KalmanTrack::new(params.clone()).unwrap();
+        let specs = KalmanTrack::inputs();
+        let values = [None, Some(Value::list(PortType::Points2D, points))];
+        let ctx = RunContext {
+            node: "kf".into(),
+            threads: 1,
+            element: None,
+        };
+        let from_points = op.run(&ctx, &Inputs::new(&specs, &values)).unwrap();
+        for name in ["states", "positions", "metrics", "estimates"] {
+            assert_eq!(
+                format!("{:?}", from_points.get(name)),
+                format!("{:?}", from_matrix.get(name)),
+                "{name}"
+            );
+        }
+        // Estimates are the filtered (not smoothed) positions, one point per frame.
+        let unsmoothed = run(
+            KalmanParams {
+                smooth: false,
+                ..params
+            },
+            z,
+        );
+        let (Some(Value::List(estimates)), Some(Value::Matrix(filtered))) =
+            (from_points.get("estimates"), unsmoothed.get("positions"))
+        else {
+            panic!()
+        };
+        assert_eq!(estimates.items.len(), 60);
+        for (k, e) in estimates.items.iter().enumerate() {
+            let Value::Points2D(p) = e else { panic!() };
+            assert_eq!(
+                p[0],
+                [filtered.data[2 * k], filtered.data[2 * k + 1]],
+                "frame {k}"
+            );
+        }
+        // Both inputs at once is an input error.
+        let both = [
+            Some(Value::Matrix(Arc::new(Matrix::new(0, 2, vec![]).unwrap()))),
+            values[1].clone(),
+        ];
+        assert!(op.run(&ctx, &Inputs::new(&specs, &both)).is_err());
+    }
+
+    #[test]
     fn gating_rejects_outliers() {
         let (truth, z) = track(200, true);
         let base = KalmanParams {
