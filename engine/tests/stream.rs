@@ -7,7 +7,6 @@ mod common;
 
 use common::source;
 
-use std::sync::Arc;
 use std::sync::atomic::{AtomicI64, AtomicUsize, Ordering};
 use std::time::Duration;
 
