@@ -102,11 +102,13 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<describe::brief::Brief>()?;
     registry.register::<describe::hog::Hog>()?;
     registry.register::<video::klt::TrackKlt>()?;
+    registry.register::<video::klt_tracker::KltTrackerOp>()?;
     registry.register::<video::block_match::BlockMatch>()?;
     registry.register::<video::horn_schunck::FlowHornSchunck>()?;
     registry.register::<video::dense_lk::FlowLk>()?;
     registry.register::<analyze::stats::Stats>()?;
     registry.register::<analyze::running_stats::RunningStatsOp>()?;
+    registry.register::<analyze::track_error::TrackError>()?;
     registry.register::<analyze::quality::Quality>()?;
     registry.register::<analyze::depth_agreement::DepthAgreement>()?;
     registry.register::<analyze::evaluate::Evaluate>()?;

@@ -10,3 +10,4 @@ pub mod reconstruction_error;
 pub mod reconstruction_points;
 pub mod running_stats;
 pub mod stats;
+pub mod track_error;

@@ -8,5 +8,6 @@ pub mod gray;
 pub mod horn_schunck;
 pub mod kalman;
 pub mod klt;
+pub mod klt_tracker;
 pub mod particle;
 pub mod synth;
