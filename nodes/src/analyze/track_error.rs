@@ -311,8 +311,7 @@ pub struct TrackError {
 impl Op for TrackError {
     type Params = TrackErrorParams;
     const ID: &'static str = "analyze.track_error";
-    const SUMMARY: &'static str =
-        "Scores feature tracks against the ground-truth motion of labelled translating objects: track length and end-point error.";
+    const SUMMARY: &'static str = "Scores feature tracks against the ground-truth motion of labelled translating objects: track length and end-point error.";
     const DOC: &'static str = r#"
 A stateful metric. Each track id is assigned, on the frame it first appears, to the object
 under it in `labels` (0 = static background, s + 1 = object s) with its offset from the

@@ -474,8 +474,7 @@ pub struct KltTrackerOp {
 impl Op for KltTrackerOp {
     type Params = KltTrackerParams;
     const ID: &'static str = "video.klt_tracker";
-    const SUMMARY: &'static str =
-        "Tracks Shi–Tomasi corners across a frame sequence with pyramidal KLT, with stable ids and re-detection.";
+    const SUMMARY: &'static str = "Tracks Shi–Tomasi corners across a frame sequence with pyramidal KLT, with stable ids and re-detection.";
     const DOC: &'static str = r#"
 A stateful tracker, the loop of OpenCV's `lk_track.py` (`goodFeaturesToTrack` +
 `calcOpticalFlowPyrLK`): on each frame the live tracks of the previous frame are followed with
