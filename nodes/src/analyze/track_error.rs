@@ -728,7 +728,9 @@ mod tests {
         st.push(&[0], &[[1.0, 1.0]], &l, &[[0.0, 0.0]; 3]).unwrap();
         let before = st.summary();
         let pos = [[0.0, 0.0]; 3];
-        let cases: Vec<(Vec<u64>, Vec<[f64; 2]>, Image, Vec<[f64; 2]>, &str)> = vec![
+        /// Track ids, points, label image, object positions, and the expected message part.
+        type Case = (Vec<u64>, Vec<[f64; 2]>, Image, Vec<[f64; 2]>, &'static str);
+        let cases: Vec<Case> = vec![
             (vec![0, 1], vec![[1.0, 1.0]], l.clone(), pos.to_vec(), "ids"),
             (
                 vec![1],

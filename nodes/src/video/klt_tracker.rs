@@ -105,7 +105,7 @@ impl KltTrackerConfig {
     pub fn check(&self) -> Result<(), String> {
         let k = &self.klt;
         let max_window = MAX_WINDOW as usize;
-        if !(3..=max_window).contains(&k.window) || k.window % 2 == 0 {
+        if !(3..=max_window).contains(&k.window) || k.window.is_multiple_of(2) {
             return Err(format!(
                 "`klt.window` must be odd and between 3 and {max_window}, got {}",
                 k.window
@@ -295,7 +295,7 @@ impl KltTracker {
         let c = &self.config;
         let due = self.frames == 0
             || survivors.len() < c.min_points
-            || (c.detect_every > 0 && self.frames % c.detect_every == 0);
+            || (c.detect_every > 0 && self.frames.is_multiple_of(c.detect_every));
         let room = c.max_points.saturating_sub(survivors.len());
         let corners = if due && room > 0 {
             self.detect(frame, &survivors, room)
