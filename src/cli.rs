@@ -236,11 +236,16 @@ fn check(registry: &mut Registry, path: &Path, set: &[String], plugins: Plugins)
         Ok(graph) => {
             let streams = match crate::streaming::stream_spec(registry, path, set) {
                 Ok(Some(spec)) => format!(
-                    ", streams (capacity {}, {} policy)",
+                    ", streams (capacity {}, {} policy{})",
                     spec.capacity,
                     match spec.policy {
                         ocellus_engine::stream::Policy::Block => "block",
                         ocellus_engine::stream::Policy::Drop => "drop",
+                    },
+                    match spec.feedback.len() {
+                        0 => String::new(),
+                        1 => ", 1 feedback edge".to_string(),
+                        n => format!(", {n} feedback edges"),
                     }
                 ),
                 Ok(None) => String::new(),
@@ -348,6 +353,18 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
                 return ExitCode::from(EXIT_INVALID);
             }
             return crate::streaming::run_streamed(args, &graph, &spec, threads);
+        }
+        Ok(Some(spec)) if !spec.feedback.is_empty() => {
+            let edge = &spec.feedback[0];
+            eprintln!(
+                "error: --batch: `{}` feeds `{}.{}` back into `{}.{}` frame by frame, which only a stream can do",
+                args.graph.display(),
+                edge.from.0,
+                edge.from.1,
+                edge.to.0,
+                edge.to.1
+            );
+            return ExitCode::from(EXIT_INVALID);
         }
         Ok(_) => {}
         Err(diags) => {

@@ -11,7 +11,11 @@ use ocellus_engine::{Graph, Registry, Value};
 use crate::cli::{EXIT_FAILED, EXIT_INVALID, RunArgs};
 use crate::report::render_bytes;
 
-/// Frames at which the resident set size is sampled (plus the last one).
+/// The resident set size is sampled at every frame and reported per window of this many
+/// frames (its largest sample in the window), plus once at the end. The largest sample, not
+/// the current one: how many packets sit in the channels when a frame reaches the sink
+/// varies from frame to frame, and with it the resident size by tens of megabytes; the
+/// window maximum is the bound that matters, and it is steady when memory is.
 const RSS_EVERY: usize = 100;
 
 /// The stream section of a graph file, if it has one.
@@ -48,6 +52,7 @@ pub fn run_streamed(args: &RunArgs, graph: &Graph, spec: &StreamSpec, threads: u
         }
         let mut emitter: Option<FrameEmitter> = None;
         rss.clear();
+        let mut window_max = 0u64;
         let result = run_stream(graph, spec, &options, |frame| {
             if let (Some(dir), true) = (&args.emit, last_repeat) {
                 let e = emitter.get_or_insert_with(|| {
@@ -55,10 +60,12 @@ pub fn run_streamed(args: &RunArgs, graph: &Graph, spec: &StreamSpec, threads: u
                 });
                 e.packet(frame)?;
             }
-            if (frame.position == 1 || frame.position % RSS_EVERY == 0)
-                && let Some(bytes) = current_rss_bytes()
-            {
-                rss.push((frame.position, bytes));
+            if let Some(bytes) = current_rss_bytes() {
+                window_max = window_max.max(bytes);
+                if frame.position == 1 || frame.position.is_multiple_of(RSS_EVERY) {
+                    rss.push((frame.position, window_max));
+                    window_max = 0;
+                }
             }
             if last_repeat {
                 last_frame = Some((frame.packet.index, frame.outputs.clone()));
@@ -159,12 +166,32 @@ fn rss_line(rss: &[(usize, u64)]) -> String {
     let last = rss.last().map(|(_, b)| *b);
     match (at(RSS_EVERY), last) {
         (Some(a), Some(b)) => format!(
-            "; resident {} at frame {RSS_EVERY}, {} at the end ({:+.1} %)",
+            "; resident {} at frame {RSS_EVERY}, {} at the end ({:+.1} %){}",
             render_bytes(a),
             render_bytes(b),
-            (b as f64 / a as f64 - 1.0) * 100.0
+            (b as f64 / a as f64 - 1.0) * 100.0,
+            window_range(rss, a)
         ),
         (None, Some(b)) => format!("; resident {} at the end", render_bytes(b)),
+        _ => String::new(),
+    }
+}
+
+/// `, per 100 frames from frame 100 on: −3.1 % to +4.0 %` (largest samples of each window
+/// against the window ending at frame 100), when there are later windows.
+fn window_range(rss: &[(usize, u64)], first: u64) -> String {
+    let later: Vec<f64> = rss
+        .iter()
+        .filter(|(f, _)| *f > RSS_EVERY && *f != usize::MAX)
+        .map(|(_, b)| (*b as f64 / first as f64 - 1.0) * 100.0)
+        .collect();
+    match (
+        later.iter().copied().reduce(f64::min),
+        later.iter().copied().reduce(f64::max),
+    ) {
+        (Some(lo), Some(hi)) => {
+            format!(", per {RSS_EVERY} frames after frame {RSS_EVERY}: {lo:+.1} % to {hi:+.1} %")
+        }
         _ => String::new(),
     }
 }

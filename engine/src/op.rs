@@ -24,6 +24,10 @@ pub struct PortSpec {
     /// packet, or a sequence operator's input consumed (and output produced) one element per
     /// packet. See [`crate::stream`].
     pub per_frame: bool,
+    /// Inputs of a frame source only: the port takes a value fed back from later in a stream
+    /// (the stream section's `feedback`), delivered with [`FrameSource::feed`] before each
+    /// frame after the first. It is never wired in `inputs`; a batch run leaves it unset.
+    pub feedback: bool,
 }
 
 impl PortSpec {
@@ -35,7 +39,16 @@ impl PortSpec {
             doc: doc.to_string(),
             optional: false,
             per_frame: false,
+            feedback: false,
         }
+    }
+
+    /// Marks an optional input of a frame source as a feedback port (see
+    /// [`PortSpec::feedback`]).
+    pub fn feedback(mut self) -> PortSpec {
+        self.feedback = true;
+        self.optional = true;
+        self
     }
 
     /// Marks a `List<T>` port as a frame sequence (see [`PortSpec::per_frame`]).
@@ -357,6 +370,22 @@ pub trait FrameSource: Send {
     fn statics(&mut self, ctx: &RunContext) -> Result<Outputs, OpError> {
         let _ = ctx;
         Ok(Outputs::new())
+    }
+    /// A value fed back on the feedback input `port` (see [`PortSpec::feedback`]): what the
+    /// stream computed from frame `index − 1`, delivered before `frame(ctx, index)` is asked
+    /// for. Frame 0 gets nothing: the source starts from its own initial state. The default
+    /// refuses, for sources without feedback ports.
+    fn feed(
+        &mut self,
+        ctx: &RunContext,
+        index: usize,
+        port: &str,
+        value: &Value,
+    ) -> Result<(), OpError> {
+        let _ = (ctx, index, value);
+        Err(OpError::failed(format!(
+            "this source takes no feedback on `{port}`"
+        )))
     }
 }
 

@@ -18,6 +18,7 @@
 //!         sources: ["video"],  // default: every node that can stream
 //!         encode: { "mask": ["gif"] },   // image outputs written with --emit (gif by default)
 //!         metrics: ["csv", "jsonl"],     // metrics outputs written with --emit (csv by default)
+//!         feedback: { "camera.velocity": "servo.velocity" },   // see below
 //!     ),
 //! )
 //! ```
@@ -48,6 +49,16 @@
 //! older packets are discarded (counted as *unaligned*) until all agree. Inputs from one source
 //! always agree.
 //!
+//! **Feedback** closes a loop without a cycle in the graph: `feedback: { "src.port":
+//! "node.output" }` delivers what `node` computed on `output` for frame k to the source `src`
+//! on its feedback input `port` ([`crate::op::PortSpec::feedback`], [`FrameSource::feed`])
+//! before `src` produces frame k + 1 — a camera moved by a controller that watches its images,
+//! as a back edge does in MediaPipe. `node` must work on `src`'s frames alone, frame by frame
+//! (per-frame or sequence), and the types must agree; `policy: "drop"` is refused (a dropped
+//! frame would leave the loop without its value), and so is a batch run. The source waits for
+//! the loop before each frame, so a loop runs at its latency: the stages still overlap with
+//! the ones outside the loop.
+//!
 //! Memory is bounded by the channels (about `capacity` packets per edge) plus each stage's own
 //! state, whatever the sequence length — unless final nodes gather a stream.
 
@@ -71,8 +82,8 @@ use crate::spec::{head_span, struct_fields, unknown_field};
 use crate::timeline::{Encoding, describe, number, parse_encode};
 use crate::value::Value;
 
-const STREAM_FIELDS: [&str; 6] = [
-    "capacity", "policy", "rate_fps", "sources", "encode", "metrics",
+const STREAM_FIELDS: [&str; 7] = [
+    "capacity", "policy", "rate_fps", "sources", "encode", "metrics", "feedback",
 ];
 /// Largest channel capacity, packets.
 pub const MAX_CAPACITY: usize = 4096;
@@ -115,6 +126,25 @@ pub struct StreamSpec {
     pub encode: BTreeMap<String, Vec<Encoding>>,
     /// Formats of metrics outputs.
     pub metrics: Vec<MetricsFormat>,
+    /// Feedback edges: later values delivered to a source before its next frame.
+    pub feedback: Vec<Feedback>,
+}
+
+/// One feedback edge of a stream: `to: from` in the section's `feedback` map. The value that
+/// the stage `from.0` computes on its output `from.1` for frame `k` is delivered to the source
+/// `to.0` on its feedback input `to.1` before the source produces frame `k + 1`
+/// ([`FrameSource::feed`]). This closes a loop — a camera driven by a controller that watches
+/// its images — without a cycle in the graph: the edge crosses from one frame to the next, as
+/// a back edge does in MediaPipe. The source therefore waits for frame `k` to go through the
+/// loop before it produces frame `k + 1`: the loop runs at its latency, not its throughput.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Feedback {
+    /// Source node and its feedback input port.
+    pub to: (String, String),
+    /// Producing node and its output port.
+    pub from: (String, String),
+    /// The map entry, for diagnostics.
+    pub span: crate::ron_syntax::Span,
 }
 
 impl Default for StreamSpec {
@@ -126,6 +156,7 @@ impl Default for StreamSpec {
             sources: Vec::new(),
             encode: BTreeMap::new(),
             metrics: vec![MetricsFormat::Csv],
+            feedback: Vec::new(),
         }
     }
 }
@@ -214,6 +245,9 @@ pub fn load_streamed(
                 ),
             );
         }
+    }
+    if diags.is_empty() {
+        check_feedback(source, &graph, &stream, &mut diags);
     }
     if diags.is_empty()
         && let Err(message) = plan(&graph, &stream, &[])
@@ -368,8 +402,21 @@ fn parse_stream(
                     "expected e.g. `[\"csv\", \"jsonl\"]`",
                 )),
             },
+            "feedback" => spec.feedback = parse_feedback(source, value, diags),
             other => diags.push(unknown_field(source, key, other, &STREAM_FIELDS, "stream")),
         }
+    }
+    if spec.policy == Policy::Drop && !spec.feedback.is_empty() {
+        let span = policy_span.unwrap_or_else(|| head_span(section));
+        diags.push(
+            stream_diag(
+                source,
+                span,
+                "`policy: \"drop\"` cannot be used with `feedback`: a dropped frame would leave the loop without its fed-back value",
+                "drop policy in a feedback loop",
+            )
+            .help("use `policy: \"block\"` (the default)"),
+        );
     }
     if spec.policy == Policy::Drop && spec.rate_fps.is_none() {
         let span = policy_span.unwrap_or_else(|| head_span(section));
@@ -384,6 +431,251 @@ fn parse_stream(
         );
     }
     (diags.0.len() == before).then_some(spec)
+}
+
+/// `feedback: { "source.port": "node.port", … }`.
+fn parse_feedback(
+    source: &Arc<SourceFile>,
+    value: &Spanned<RonValue>,
+    diags: &mut Diagnostics,
+) -> Vec<Feedback> {
+    let RonValue::Map(entries) = &value.value else {
+        diags.push(
+            stream_diag(
+                source,
+                value.span,
+                format!(
+                    "`feedback` must be a map from source inputs to outputs, found {}",
+                    a_kind(&value.value)
+                ),
+                "expected a map",
+            )
+            .help("e.g. `feedback: { \"camera.velocity\": \"servo.velocity\" }`"),
+        );
+        return Vec::new();
+    };
+    let port = |v: &Spanned<RonValue>, what: &str, diags: &mut Diagnostics| match &v.value {
+        RonValue::Str(s) => match s.rsplit_once('.') {
+            Some((node, port)) if !node.is_empty() && !port.is_empty() => {
+                Some((node.to_string(), port.to_string()))
+            }
+            _ => {
+                diags.push(
+                    stream_diag(
+                        source,
+                        v.span,
+                        format!("`feedback` {what} must be `node.port`, found \"{s}\""),
+                        "not `node.port`",
+                    )
+                    .help("e.g. `\"servo.velocity\"`"),
+                );
+                None
+            }
+        },
+        other => {
+            diags.push(stream_diag(
+                source,
+                v.span,
+                format!(
+                    "`feedback` {what} must be a quoted `node.port`, found {}",
+                    a_kind(other)
+                ),
+                "expected a string",
+            ));
+            None
+        }
+    };
+    let mut edges: Vec<Feedback> = Vec::new();
+    for (key, target) in entries {
+        let to = port(key, "keys (source inputs)", diags);
+        let from = port(target, "values (outputs)", diags);
+        let (Some(to), Some(from)) = (to, from) else {
+            continue;
+        };
+        let span = crate::ron_syntax::Span {
+            start: key.span.start,
+            end: target.span.end,
+        };
+        if edges.iter().any(|e| e.to == to) {
+            diags.push(stream_diag(
+                source,
+                key.span,
+                format!("`feedback` feeds `{}.{}` twice", to.0, to.1),
+                "fed again here",
+            ));
+            continue;
+        }
+        edges.push(Feedback { to, from, span });
+    }
+    edges
+}
+
+/// Checks the feedback edges against the graph and its stream plan.
+fn check_feedback(
+    source: &Arc<SourceFile>,
+    graph: &Graph,
+    stream: &StreamSpec,
+    diags: &mut Diagnostics,
+) {
+    let at = |edge: &Feedback, message: String, help: Option<String>| {
+        stream_diag(source, edge.span, message, "this feedback edge").maybe_help(help)
+    };
+    let node_help = |name: &str| {
+        suggest(name, graph.nodes.iter().map(|n| n.name.as_str()))
+            .map(|s| format!("did you mean `{s}`?"))
+    };
+    let mut structural = Vec::new();
+    for edge in &stream.feedback {
+        let (to_node, to_port) = (&edge.to.0, &edge.to.1);
+        let (from_node, from_port) = (&edge.from.0, &edge.from.1);
+        let Some(t) = graph.node_index(to_node) else {
+            diags.push(at(
+                edge,
+                format!("`feedback` feeds `{to_node}`, which is not a node"),
+                node_help(to_node),
+            ));
+            continue;
+        };
+        let Some(f) = graph.node_index(from_node) else {
+            diags.push(at(
+                edge,
+                format!("`feedback` reads `{from_node}`, which is not a node"),
+                node_help(from_node),
+            ));
+            continue;
+        };
+        let target = &graph.nodes[t];
+        let Some(tp) = target.info.inputs.iter().position(|p| &p.name == to_port) else {
+            diags.push(at(
+                edge,
+                format!("`{to_node}` ({}) has no input `{to_port}`", target.info.id),
+                suggest(to_port, target.info.inputs.iter().map(|p| p.name.as_str()))
+                    .map(|s| format!("did you mean `{s}`?")),
+            ));
+            continue;
+        };
+        if !can_stream(graph, t) || !target.info.inputs[tp].feedback {
+            diags.push(at(
+                edge,
+                format!(
+                    "`{to_node}.{to_port}` ({}) is not a feedback input of a frame source",
+                    target.info.id
+                ),
+                Some("feedback goes into a source's feedback port, e.g. `capture.moving_camera`'s `velocity`".into()),
+            ));
+            continue;
+        }
+        if target.inputs[tp].is_some() {
+            diags.push(at(
+                edge,
+                format!("`{to_node}.{to_port}` is fed back and also wired in `inputs`"),
+                Some("remove it from the node's `inputs`".into()),
+            ));
+            continue;
+        }
+        let producer = &graph.nodes[f];
+        let Some(fp) = producer
+            .info
+            .outputs
+            .iter()
+            .position(|p| &p.name == from_port)
+        else {
+            diags.push(at(
+                edge,
+                format!(
+                    "`{from_node}` ({}) has no output `{from_port}`",
+                    producer.info.id
+                ),
+                suggest(
+                    from_port,
+                    producer.info.outputs.iter().map(|p| p.name.as_str()),
+                )
+                .map(|s| format!("did you mean `{s}`?")),
+            ));
+            continue;
+        };
+        let produced = &producer.output_types[fp];
+        let element = produced.element().unwrap_or(produced);
+        let expected = &target.info.inputs[tp].ty;
+        if element != expected {
+            diags.push(at(
+                edge,
+                format!(
+                    "type mismatch: `{from_node}.{from_port}` gives {element} per frame, `{to_node}.{to_port}` takes {expected}"
+                ),
+                None,
+            ));
+            continue;
+        }
+        if f == t {
+            diags.push(at(
+                edge,
+                format!("`{to_node}` cannot feed its own output back into itself"),
+                None,
+            ));
+            continue;
+        }
+        let sources = stream_ancestors(graph, f);
+        if sources != [t] {
+            diags.push(at(
+                edge,
+                format!(
+                    "`{from_node}` must work on `{to_node}`'s frames (and no other source's) to feed it back"
+                ),
+                Some("feedback closes a loop: the fed-back value must be computed from the source's own frames".into()),
+            ));
+            continue;
+        }
+        structural.push((edge, f, fp));
+    }
+    if !diags.is_empty() {
+        return;
+    }
+    // What the plan makes of the producers: they must run per frame.
+    // (A plan that fails is reported by the caller.)
+    if let Ok(plan) = plan(graph, stream, &[]) {
+        for (edge, f, fp) in structural {
+            if !(plan.is_stage(f) && plan.is_streamed(PortRef { node: f, port: fp })) {
+                diags.push(at(
+                    edge,
+                    format!(
+                        "`{}.{}` is not produced frame by frame ({} node), so it cannot be fed back",
+                        edge.from.0,
+                        edge.from.1,
+                        plan.class[f].name()
+                    ),
+                    Some("feed back an output of a node mapped over the frames or of a sequence operator".into()),
+                ));
+            }
+        }
+    }
+}
+
+/// The frame sources (nodes that can stream) that node `i` depends on, itself included,
+/// in index order.
+fn stream_ancestors(graph: &Graph, i: usize) -> Vec<usize> {
+    let mut seen = vec![false; graph.nodes.len()];
+    let mut stack = vec![i];
+    let mut found = Vec::new();
+    while let Some(j) = stack.pop() {
+        if std::mem::replace(&mut seen[j], true) {
+            continue;
+        }
+        if can_stream(graph, j) {
+            found.push(j);
+            continue;
+        }
+        stack.extend(
+            graph.nodes[j]
+                .inputs
+                .iter()
+                .flatten()
+                .flat_map(InputEdge::sources)
+                .map(|p| p.node),
+        );
+    }
+    found.sort_unstable();
+    found
 }
 
 /// Whether node `i`'s operator can be a stream source: `per_frame` outputs, no `per_frame`
@@ -470,6 +762,12 @@ fn plan(graph: &Graph, spec: &StreamSpec, selected: &[String]) -> Result<StreamP
         }
     }
     roots.extend(requested.iter().map(|o| o.from.node));
+    // A feedback producer runs even when no requested output reads it: it drives a source.
+    roots.extend(
+        spec.feedback
+            .iter()
+            .filter_map(|e| graph.node_index(&e.from.0)),
+    );
     let mut needed = vec![false; n];
     let mut stack = roots;
     while let Some(i) = stack.pop() {
@@ -922,8 +1220,44 @@ pub fn run_stream(
     for p in &plan.gathered {
         consumers[p.node].insert(sink);
     }
+    // Feedback: (source, its input port, the producing port).
+    let mut feedback: Vec<(usize, String, PortRef)> = Vec::new();
+    for edge in &spec.feedback {
+        let found = graph
+            .node_index(&edge.to.0)
+            .zip(graph.node_index(&edge.from.0));
+        let Some((t, f)) = found else {
+            return Err(StreamError::Plan(format!(
+                "feedback `{}.{}`: `{}.{}` is not in the graph",
+                edge.to.0, edge.to.1, edge.from.0, edge.from.1
+            )));
+        };
+        let port = graph.nodes[f]
+            .info
+            .outputs
+            .iter()
+            .position(|p| p.name == edge.from.1);
+        match port {
+            Some(port) if plan.class[t] == NodeClass::Source && plan.is_stage(f) => {
+                feedback.push((t, edge.to.1.clone(), PortRef { node: f, port }));
+            }
+            _ => {
+                return Err(StreamError::Plan(format!(
+                    "feedback `{}.{}` from `{}.{}`: not a source fed by a stage",
+                    edge.to.0, edge.to.1, edge.from.0, edge.from.1
+                )));
+            }
+        }
+    }
+    for (t, _, from) in &feedback {
+        consumers[from.node].insert(*t);
+    }
     for i in (0..n).filter(|&i| plan.is_stage(i)) {
-        if consumers[i].is_empty() {
+        // (A stage read only by a source, through feedback, is terminal too.)
+        if consumers[i]
+            .iter()
+            .all(|&c| c != sink && plan.class[c] == NodeClass::Source)
+        {
             consumers[i].insert(sink); // completion of terminal stages
         }
     }
@@ -973,6 +1307,11 @@ pub fn run_stream(
             let source = sources.remove(&i);
             let state = states.remove(&i);
             let ctx_for = &ctx_for;
+            let fed: Vec<(String, PortRef)> = feedback
+                .iter()
+                .filter(|(t, _, _)| *t == i)
+                .map(|(_, port, from)| (port.clone(), *from))
+                .collect();
             let name = format!("ocellus-stage-{i}");
             let spawned = std::thread::Builder::new()
                 .name(name)
@@ -988,7 +1327,9 @@ pub fn run_stream(
                         outputs: tx,
                     };
                     match source {
-                        Some(source) => stage.run_source(source, spec, ctx_for(i, None)),
+                        Some(source) => {
+                            stage.run_source(source, spec, ctx_for(i, None), rx, &fed);
+                        }
                         None => stage.run_inner(rx, state, ctx_for, finals),
                     }
                 });
@@ -1236,13 +1577,100 @@ impl Stage<'_> {
             .all(|tx| tx.send(Arc::clone(&msg)).is_ok())
     }
 
-    fn run_source(self, mut source: Box<dyn FrameSource>, spec: &StreamSpec, ctx: RunContext) {
+    /// Produces the source's frames. `feedback` lists the receivers of the stages that feed
+    /// values back, and `fed` which of their ports go to which input.
+    fn run_source(
+        mut self,
+        source: Box<dyn FrameSource>,
+        spec: &StreamSpec,
+        ctx: RunContext,
+        feedback: Vec<(usize, Receiver<Arc<FrameMsg>>)>,
+        fed: &[(String, PortRef)],
+    ) {
+        self.produce(source, spec, ctx, &feedback, fed);
+        if feedback.is_empty() {
+            return;
+        }
+        // The feedback producers send their last frame's values too: close this source's
+        // outputs so the pipeline can end, and take what they send until they have finished
+        // (a closed receiver would make them stop before finishing their own state).
+        self.outputs.clear();
+        for (_, rx) in &feedback {
+            while rx.recv().is_ok() {}
+        }
+    }
+
+    fn produce(
+        &self,
+        mut source: Box<dyn FrameSource>,
+        spec: &StreamSpec,
+        ctx: RunContext,
+        feedback: &[(usize, Receiver<Arc<FrameMsg>>)],
+        fed: &[(String, PortRef)],
+    ) {
         let node = &self.graph.nodes[self.index];
         let start = Instant::now();
         let mut previous: Option<i64> = None;
+        let mut last_sent: Option<usize> = None;
         for k in 0..source.frames() {
             if self.shared.aborted() {
                 return;
+            }
+            // Close the loop: the values computed from the last frame sent, before this one.
+            if let Some(last) = last_sent {
+                for (producer, rx) in feedback {
+                    let Ok(msg) = rx.recv() else {
+                        return; // the producer stopped: the stream is failing
+                    };
+                    if msg.packet.index != last {
+                        self.fail(
+                            Some(k),
+                            format!(
+                                "feedback from `{}` belongs to frame {}, expected frame {last}",
+                                self.graph.nodes[*producer].name, msg.packet.index
+                            ),
+                        );
+                        return;
+                    }
+                    for (port, from) in fed.iter().filter(|(_, f)| f.node == *producer) {
+                        let Some(value) = msg.values.get(from.port).and_then(Option::as_ref) else {
+                            self.fail(
+                                Some(k),
+                                format!(
+                                    "`{}` sent no `{}` to feed back",
+                                    self.graph.nodes[from.node].name,
+                                    self.graph.nodes[from.node].info.outputs[from.port].name
+                                ),
+                            );
+                            return;
+                        };
+                        let frame_ctx = RunContext {
+                            element: Some(k),
+                            ..ctx.clone()
+                        };
+                        let t0 = Instant::now();
+                        let result = self
+                            .pool
+                            .install(|| {
+                                catch_unwind(AssertUnwindSafe(|| {
+                                    source.feed(&frame_ctx, k, port, value)
+                                }))
+                            })
+                            .unwrap_or_else(|p| {
+                                Err(OpError::failed(format!(
+                                    "operator panicked: {}",
+                                    panic_message(p.as_ref())
+                                )))
+                            });
+                        if let Ok(mut b) = self.busy.lock() {
+                            b.1 += t0.elapsed();
+                        }
+                        if let Err(e) = result {
+                            self.fail(Some(k), format!("feedback on `{port}`: {e}"));
+                            return;
+                        }
+                    }
+                }
             }
             let timestamp_us = source.timestamp_us(k);
             if previous.is_some_and(|p| timestamp_us <= p) {
@@ -1318,6 +1746,7 @@ impl Stage<'_> {
             }) {
                 return;
             }
+            last_sent = Some(k);
         }
     }
 

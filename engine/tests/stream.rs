@@ -287,6 +287,135 @@ impl SequenceState for CumSumState {
     }
 }
 
+params! {
+    /// `s.plant`.
+    pub struct PlantParams {
+        /// Frames.
+        frames: u32 = 10 => [min = 1, max = 10000000],
+        /// State at frame 0.
+        start: f64 = 1.0,
+    }
+}
+
+/// Source with feedback: state x, frame k shows x_k; a value u fed back after frame k gives
+/// x_{k+1} = x_k + u (nothing fed back: x stays). A NaN fed back is an error.
+struct Plant(PlantParams);
+
+impl Op for Plant {
+    type Params = PlantParams;
+    const ID: &'static str = "s.plant";
+    const SUMMARY: &'static str = "integrates fed-back steps";
+    const DOC: &'static str = "integrates fed-back steps";
+    fn inputs() -> Vec<PortSpec> {
+        vec![PortSpec::new("u", PortType::Scalar, "step").feedback()]
+    }
+    fn outputs() -> Vec<PortSpec> {
+        vec![PortSpec::new("x", PortType::Scalar.list_of(), "state").per_frame()]
+    }
+    fn new(p: PlantParams) -> Result<Self, String> {
+        Ok(Plant(p))
+    }
+}
+
+impl Operator for Plant {
+    fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
+        assert!(inputs.get("u").is_none(), "a feedback port is never wired");
+        let items = (0..self.0.frames)
+            .map(|_| Value::Scalar(self.0.start))
+            .collect();
+        Ok(Outputs::new().with("x", Value::list(PortType::Scalar, items)))
+    }
+    fn frame_source(
+        &self,
+        _ctx: &RunContext,
+        _inputs: &Inputs<'_>,
+    ) -> Option<Result<Box<dyn FrameSource>, OpError>> {
+        Some(Ok(Box::new(PlantSource {
+            frames: self.0.frames as usize,
+            x: self.0.start,
+            fed: Vec::new(),
+        })))
+    }
+}
+
+struct PlantSource {
+    frames: usize,
+    x: f64,
+    /// Frame indices at which feedback arrived.
+    fed: Vec<usize>,
+}
+
+impl FrameSource for PlantSource {
+    fn frames(&self) -> usize {
+        self.frames
+    }
+    fn timestamp_us(&self, index: usize) -> i64 {
+        index as i64 * 1000
+    }
+    fn frame(&mut self, _ctx: &RunContext, index: usize) -> Result<Outputs, OpError> {
+        // With a loop, feedback arrives exactly once before every frame but the first.
+        let expected: Vec<usize> = (1..=index).collect();
+        if !self.fed.is_empty() && self.fed != expected {
+            return Err(OpError::failed(format!(
+                "frame {index} after feedback at {:?}",
+                self.fed
+            )));
+        }
+        Ok(Outputs::new().with("x", Value::Scalar(self.x)))
+    }
+    fn feed(
+        &mut self,
+        _ctx: &RunContext,
+        index: usize,
+        port: &str,
+        value: &Value,
+    ) -> Result<(), OpError> {
+        assert_eq!(port, "u");
+        let Value::Scalar(u) = value else {
+            return Err(OpError::failed("not a scalar"));
+        };
+        if !u.is_finite() {
+            return Err(OpError::failed(format!("step {u} is not finite")));
+        }
+        self.fed.push(index);
+        self.x += u;
+        Ok(())
+    }
+}
+
+params! {
+    /// `s.gain`.
+    pub struct GainParams {
+        /// Factor.
+        k: f64 = -0.5,
+    }
+}
+
+/// Per element: k · x.
+struct Gain(GainParams);
+
+impl Op for Gain {
+    type Params = GainParams;
+    const ID: &'static str = "s.gain";
+    const SUMMARY: &'static str = "scales";
+    const DOC: &'static str = "scales";
+    fn inputs() -> Vec<PortSpec> {
+        vec![PortSpec::new("x", PortType::Scalar, "x")]
+    }
+    fn outputs() -> Vec<PortSpec> {
+        vec![PortSpec::new("y", PortType::Scalar, "k · x")]
+    }
+    fn new(p: GainParams) -> Result<Self, String> {
+        Ok(Gain(p))
+    }
+}
+
+impl Operator for Gain {
+    fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
+        Ok(Outputs::new().with("y", Value::Scalar(self.0.k * inputs.scalar("x")?)))
+    }
+}
+
 /// The common test operators (`t.collect` sums a list) and the streaming ones above.
 fn registry() -> Registry {
     let (mut reg, _) = common::registry();
@@ -295,6 +424,8 @@ fn registry() -> Registry {
     reg.register::<Slow>().unwrap();
     reg.register::<Add2>().unwrap();
     reg.register::<CumSum>().unwrap();
+    reg.register::<Plant>().unwrap();
+    reg.register::<Gain>().unwrap();
     reg
 }
 
@@ -676,4 +807,152 @@ fn a_long_stream_runs_in_bounded_memory() {
         panic!("{:?}", report.outputs)
     };
     assert!((total - expected).abs() / expected < 1e-12);
+}
+
+/// A proportional loop: the plant shows x_k, the controller computes u_k = −½ x_k, fed back:
+/// x_{k+1} = x_k + u_k = x_k / 2.
+const LOOP: &str = r#"Graph(
+    name: "loop",
+    nodes: {
+        "plant": (op: "s.plant", params: (frames: 30, start: 1024.0)),
+        "ctl": (op: "s.gain", inputs: { "x": "plant.x" }, params: (k: -0.5)),
+        "sum": (op: "s.cumsum", inputs: { "values": "plant.x" }),
+    },
+    outputs: { "x": "plant.x", "total": "sum.total" },
+    stream: (capacity: 3, feedback: { "plant.u": "ctl.y" }),
+)"#;
+
+#[test]
+fn feedback_closes_a_loop_frame_by_frame_at_any_thread_count() {
+    for threads in [1, 2, 4] {
+        let (frames, report) = stream(LOOP, threads);
+        let xs = scalar_column(&frames, "x");
+        let expected: Vec<f64> = (0..30).map(|k| 1024.0 * 0.5f64.powi(k)).collect();
+        assert_eq!(xs, expected, "{threads} threads");
+        // The controller runs although no output reads it: it drives the plant.
+        let ctl = report.stages.iter().find(|s| s.name == "ctl").unwrap();
+        assert_eq!((ctl.class, ctl.frames), (NodeClass::PerFrame, 30));
+        let total: f64 = expected.iter().sum();
+        assert!(
+            matches!(report.outputs.first(), Some((_, Value::Scalar(t))) if *t == total),
+            "the sequence stage finished after the loop: {:?}",
+            report.outputs
+        );
+    }
+    // Without the feedback edge the plant holds still: the loop is what moves it.
+    let open = LOOP.replace(r#"feedback: { "plant.u": "ctl.y" }"#, "");
+    let (frames, _) = stream(&open.replace("(capacity: 3, )", "(capacity: 3)"), 2);
+    assert!(scalar_column(&frames, "x").iter().all(|&x| x == 1024.0));
+}
+
+#[test]
+fn a_sequence_stage_can_feed_back() {
+    // u_k = Σ_{j≤k} x_j (a running sum), so x_{k+1} = x_k + Σ_{j≤k} x_j.
+    let text = LOOP.replace(r#""plant.u": "ctl.y""#, r#""plant.u": "sum.sums""#);
+    let text = text
+        .replace("start: 1024.0", "start: 1.0")
+        .replace("frames: 30", "frames: 12");
+    let (frames, _) = stream(&text, 2);
+    let mut x = 1.0;
+    let mut sum = 0.0;
+    let mut expected = Vec::new();
+    for _ in 0..12 {
+        expected.push(x);
+        sum += x;
+        x += sum;
+    }
+    assert_eq!(scalar_column(&frames, "x"), expected);
+}
+
+#[test]
+fn a_failure_inside_the_loop_ends_the_stream_without_hanging() {
+    // The controller fails at frame 3 (x = 128 → u = −64: s.square would be the wrong op, so
+    // the source refuses a non-finite step instead).
+    let text = LOOP.replace("params: (k: -0.5)", "params: (k: -1e308)");
+    let text = text.replace("start: 1024.0", "start: 1e10");
+    let (graph, spec) = load(&text);
+    let err = run_stream(&graph, &spec, &RunOptions::default(), |_| Ok(())).unwrap_err();
+    let message = err.to_string();
+    assert!(
+        message.contains("plant") && message.contains("not finite") && message.contains("frame 1"),
+        "{message}"
+    );
+    // A failing stage inside the loop: the source stops waiting for its feedback.
+    let text = r#"Graph(
+        name: "g",
+        nodes: {
+            "plant": (op: "s.plant", params: (frames: 10, start: 3.0)),
+            "sq": (op: "s.square", inputs: { "x": "plant.x" }, params: (fail_at: 3.0)),
+            "ctl": (op: "s.gain", inputs: { "x": "sq.y" }),
+        },
+        outputs: { "x": "plant.x" },
+        stream: (feedback: { "plant.u": "ctl.y" }),
+    )"#;
+    let (graph, spec) = load(text);
+    let err = run_stream(&graph, &spec, &RunOptions::default(), |_| Ok(())).unwrap_err();
+    assert!(
+        err.to_string().contains("`sq`") && err.to_string().contains("frame 0"),
+        "{err}"
+    );
+}
+
+#[test]
+fn bad_feedback_edges_are_load_errors() {
+    let graph = |nodes: &str, feedback: &str| {
+        format!(
+            r#"Graph(
+    name: "g",
+    nodes: {{
+        "plant": (op: "s.plant"),
+        "ctl": (op: "s.gain", inputs: {{ "x": "plant.x" }}),
+        "sum": (op: "s.cumsum", inputs: {{ "values": "plant.x" }}),
+        "src": (op: "s.count"),
+        "other": (op: "s.gain", inputs: {{ "x": "src.values" }}),
+        "all": (op: "t.collect", inputs: {{ "items": "ctl.y" }}),{nodes}
+    }},
+    outputs: {{ "x": "plant.x", "o": "other.y", "all": "all.total" }},
+    stream: (feedback: {feedback}),
+)"#
+        )
+    };
+    let e = errors(&graph("", r#"{ "plant.u": "ctll.y" }"#));
+    assert!(
+        e.contains("reads `ctll`, which is not a node") && e.contains("did you mean `ctl`?"),
+        "{e}"
+    );
+    assert!(e.starts_with("stream.ron:12:"), "{e}");
+    let e = errors(&graph("", r#"{ "plant.v": "ctl.y" }"#));
+    assert!(e.contains("has no input `v`"), "{e}");
+    let e = errors(&graph("", r#"{ "ctl.x": "ctl.y" }"#));
+    assert!(
+        e.contains("is not a feedback input of a frame source"),
+        "{e}"
+    );
+    let e = errors(&graph("", r#"{ "plant.u": "ctl.z" }"#));
+    assert!(e.contains("has no output `z`"), "{e}");
+    let e = errors(&graph("", r#"{ "plant.u": "sum.indices" }"#));
+    assert!(e.contains("type mismatch") && e.contains("Integer"), "{e}");
+    let e = errors(&graph("", r#"{ "plant.u": "other.y" }"#));
+    assert!(e.contains("must work on `plant`'s frames"), "{e}");
+    let e = errors(&graph("", r#"{ "plant.u": "all.total" }"#));
+    assert!(
+        e.contains("not produced frame by frame (final node)"),
+        "{e}"
+    );
+    let e = errors(&graph("", r#"{ "plant.u": "plant.x" }"#));
+    assert!(e.contains("cannot feed its own output back"), "{e}");
+    let e = errors(&graph("", r#"{ "plant.u": "ctl" }"#));
+    assert!(e.contains("must be `node.port`"), "{e}");
+    let e = errors(&graph("", r#"["ctl.y"]"#));
+    assert!(e.contains("must be a map"), "{e}");
+    let e = errors(&graph(
+        "",
+        r#"{ "plant.u": "ctl.y" }, policy: "drop", rate_fps: 30"#,
+    ));
+    assert!(e.contains("cannot be used with `feedback`"), "{e}");
+    let e = errors(&graph("", r#"{ "plant.u": "ctl.y" }"#).replace(
+        r#""plant": (op: "s.plant"),"#,
+        r#""plant": (op: "s.plant", inputs: { "u": "src.values[0]" }),"#,
+    ));
+    assert!(e.contains("fed back and also wired"), "{e}");
 }
