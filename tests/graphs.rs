@@ -26,6 +26,7 @@ const SNAPSHOTTED: &[&str] = &[
     "reconstruct.ron",
     "render.ron",
     "segment.ron",
+    "servo.ron",
     "sfm.ron",
     "stereo.ron",
     "two_branches.ron",
@@ -249,4 +250,27 @@ fn track() {
         }
     }
     insta::assert_snapshot!("track", text(&one));
+}
+
+/// `servo.ron`, a closed loop (the camera is driven by velocities fed back from its own frames):
+/// the streamed outputs are the same at 1 and 2 threads. `tests/servo.rs` checks that it
+/// converges.
+#[test]
+fn servo() {
+    let registry = ocellus_nodes::builtin_registry().unwrap();
+    let path = root().join("graphs").join("servo.ron");
+    let stream = |threads| {
+        ocellus_engine::testing::run_stream_graph(&registry, &path, threads, &[])
+            .unwrap_or_else(|e| panic!("servo.ron: {e}"))
+    };
+    let text = |outputs: &[(String, ocellus_engine::Value)]| {
+        ocellus_engine::summary::summarize_outputs(outputs)
+    };
+    let one = text(&stream(1));
+    assert_eq!(
+        one,
+        text(&stream(2)),
+        "streamed outputs differ between 1 and 2 threads"
+    );
+    insta::assert_snapshot!("servo", one);
 }

@@ -35,6 +35,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<capture::sequence::Sequence>()?;
     registry.register::<capture::moving::MovingShapes>()?;
     registry.register::<capture::moving::Select>()?;
+    registry.register::<capture::moving_camera::MovingCamera>()?;
     registry.register::<capture::render::CaptureRender>()?;
     registry.register::<sfm::pairs::MatchPairs>()?;
     registry.register::<sfm::tracks::TracksOp>()?;
