@@ -283,16 +283,12 @@ fn snapshot(registry: &mut Registry, path: &Path, threads: usize, plugins: Plugi
     match crate::animation::timeline(registry, path, &[]) {
         Ok(Some(_)) => {
             // Each output as a list over the frames.
-            return match ocellus_engine::testing::run_animated_graph(registry, path, threads, &[]) {
-                Ok(outputs) => {
-                    print!("{}", ocellus_engine::summary::summarize_outputs(&outputs));
-                    ExitCode::SUCCESS
-                }
-                Err(e) => {
-                    eprintln!("error: {e}");
-                    ExitCode::from(EXIT_FAILED)
-                }
-            };
+            return print_summary(ocellus_engine::testing::run_animated_graph(
+                registry,
+                path,
+                threads,
+                &[],
+            ));
         }
         Ok(None) => {}
         Err(diags) => {
@@ -304,16 +300,12 @@ fn snapshot(registry: &mut Registry, path: &Path, threads: usize, plugins: Plugi
         // Streamed, as the tests snapshot it: each per-frame output as its list over frames
         // (a batch run gives the same values, except that only a stream closes feedback loops).
         Ok(Some(_)) => {
-            return match ocellus_engine::testing::run_stream_graph(registry, path, threads, &[]) {
-                Ok(outputs) => {
-                    print!("{}", ocellus_engine::summary::summarize_outputs(&outputs));
-                    ExitCode::SUCCESS
-                }
-                Err(e) => {
-                    eprintln!("error: {e}");
-                    ExitCode::from(EXIT_FAILED)
-                }
-            };
+            return print_summary(ocellus_engine::testing::run_stream_graph(
+                registry,
+                path,
+                threads,
+                &[],
+            ));
         }
         Ok(None) => {}
         Err(diags) => {
@@ -336,6 +328,20 @@ fn snapshot(registry: &mut Registry, path: &Path, threads: usize, plugins: Plugi
         Err(e) => {
             eprintln!("error: {e}");
             ExitCode::from(EXIT_INVALID)
+        }
+    }
+}
+
+/// Prints the snapshot summary of `outputs`, or the error.
+fn print_summary(outputs: Result<Vec<(String, ocellus_engine::Value)>, String>) -> ExitCode {
+    match outputs {
+        Ok(outputs) => {
+            print!("{}", ocellus_engine::summary::summarize_outputs(&outputs));
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(EXIT_FAILED)
         }
     }
 }

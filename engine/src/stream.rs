@@ -1400,14 +1400,7 @@ pub fn run_stream(
             whole_inputs(graph, None, i, &values).map_err(|m| node_error(graph, i, None, m))?;
         let ctx = ctx_for(i, None);
         let t0 = Instant::now();
-        let result = pool
-            .install(|| catch_unwind(AssertUnwindSafe(|| run_node(node, &ctx, &inputs))))
-            .unwrap_or_else(|p| {
-                Err(OpError::failed(format!(
-                    "operator panicked: {}",
-                    panic_message(p.as_ref())
-                )))
-            })
+        let result = guarded(&pool, || run_node(node, &ctx, &inputs))
             .map_err(|e| node_error(graph, i, None, e.to_string()))?;
         if let Ok(mut b) = busy[i].lock() {
             *b = (1, t0.elapsed());
@@ -1544,6 +1537,20 @@ fn next_aligned(
     }
 }
 
+/// Runs `f` on the pool; a panic becomes the operator's error.
+fn guarded<T: Send>(
+    pool: &rayon::ThreadPool,
+    f: impl FnOnce() -> Result<T, OpError> + Send,
+) -> Result<T, OpError> {
+    pool.install(|| catch_unwind(AssertUnwindSafe(f)))
+        .unwrap_or_else(|p| {
+            Err(OpError::failed(format!(
+                "operator panicked: {}",
+                panic_message(p.as_ref())
+            )))
+        })
+}
+
 /// One pipeline stage.
 struct Stage<'a> {
     graph: &'a Graph,
@@ -1557,9 +1564,17 @@ struct Stage<'a> {
 }
 
 impl Stage<'_> {
+    /// One packet handled in `took`.
     fn account(&self, took: Duration) {
         if let Ok(mut b) = self.busy.lock() {
             b.0 += 1;
+            b.1 += took;
+        }
+    }
+
+    /// Operator time outside a packet (feedback, the end of the stream).
+    fn account_time(&self, took: Duration) {
+        if let Ok(mut b) = self.busy.lock() {
             b.1 += took;
         }
     }
@@ -1649,22 +1664,8 @@ impl Stage<'_> {
                             ..ctx.clone()
                         };
                         let t0 = Instant::now();
-                        let result = self
-                            .pool
-                            .install(|| {
-                                catch_unwind(AssertUnwindSafe(|| {
-                                    source.feed(&frame_ctx, k, port, value)
-                                }))
-                            })
-                            .unwrap_or_else(|p| {
-                                Err(OpError::failed(format!(
-                                    "operator panicked: {}",
-                                    panic_message(p.as_ref())
-                                )))
-                            });
-                        if let Ok(mut b) = self.busy.lock() {
-                            b.1 += t0.elapsed();
-                        }
+                        let result = guarded(self.pool, || source.feed(&frame_ctx, k, port, value));
+                        self.account_time(t0.elapsed());
                         if let Err(e) = result {
                             self.fail(Some(k), format!("feedback on `{port}`: {e}"));
                             return;
@@ -1697,15 +1698,7 @@ impl Stage<'_> {
                 element: Some(k),
                 ..ctx.clone()
             };
-            let produced = self
-                .pool
-                .install(|| catch_unwind(AssertUnwindSafe(|| source.frame(&frame_ctx, k))))
-                .unwrap_or_else(|p| {
-                    Err(OpError::failed(format!(
-                        "operator panicked: {}",
-                        panic_message(p.as_ref())
-                    )))
-                });
+            let produced = guarded(self.pool, || source.frame(&frame_ctx, k));
             self.account(t0.elapsed());
             let mut produced = match produced {
                 Ok(o) => o,
@@ -1797,51 +1790,37 @@ impl Stage<'_> {
             }
             let ctx = ctx_for(self.index, Some(packet.index));
             let t0 = Instant::now();
-            let result = self
-                .pool
-                .install(|| {
-                    catch_unwind(AssertUnwindSafe(|| {
-                        let ins = Inputs::new(&node.info.inputs, &inputs);
-                        match state.as_mut() {
-                            Some(state) => state.push(&ctx, packet, &ins).and_then(|mut out| {
-                                node.info
-                                    .outputs
-                                    .iter()
-                                    .filter(|s| s.per_frame)
-                                    .map(|s| {
-                                        let v = out.take(&s.name).ok_or_else(|| {
-                                            OpError::failed(format!(
-                                                "no value for output `{}`",
-                                                s.name
-                                            ))
-                                        })?;
-                                        let expected =
-                                            s.ty.element().cloned().unwrap_or(s.ty.clone());
-                                        if v.port_type() != expected {
-                                            return Err(OpError::failed(format!(
-                                                "produced {} on output `{}`, declared {expected}",
-                                                v.port_type(),
-                                                s.name
-                                            )));
-                                        }
-                                        Ok(Some(v))
-                                    })
-                                    .collect::<Result<Vec<_>, _>>()
-                            }),
-                            None => node
-                                .op
-                                .run(&ctx, &ins)
-                                .and_then(|out| collect_outputs(node, out, true))
-                                .map(|v| v.into_iter().map(Some).collect()),
-                        }
-                    }))
-                })
-                .unwrap_or_else(|p| {
-                    Err(OpError::failed(format!(
-                        "operator panicked: {}",
-                        panic_message(p.as_ref())
-                    )))
-                });
+            let result = guarded(self.pool, || {
+                let ins = Inputs::new(&node.info.inputs, &inputs);
+                match state.as_mut() {
+                    Some(state) => state.push(&ctx, packet, &ins).and_then(|mut out| {
+                        node.info
+                            .outputs
+                            .iter()
+                            .filter(|s| s.per_frame)
+                            .map(|s| {
+                                let v = out.take(&s.name).ok_or_else(|| {
+                                    OpError::failed(format!("no value for output `{}`", s.name))
+                                })?;
+                                let expected = s.ty.element().cloned().unwrap_or(s.ty.clone());
+                                if v.port_type() != expected {
+                                    return Err(OpError::failed(format!(
+                                        "produced {} on output `{}`, declared {expected}",
+                                        v.port_type(),
+                                        s.name
+                                    )));
+                                }
+                                Ok(Some(v))
+                            })
+                            .collect::<Result<Vec<_>, _>>()
+                    }),
+                    None => node
+                        .op
+                        .run(&ctx, &ins)
+                        .and_then(|out| collect_outputs(node, out, true))
+                        .map(|v| v.into_iter().map(Some).collect()),
+                }
+            });
             self.account(t0.elapsed());
             let per_frame = match result {
                 Ok(v) => v,
@@ -1877,18 +1856,8 @@ impl Stage<'_> {
         if let Some(mut state) = state {
             let ctx = ctx_for(self.index, None);
             let t0 = Instant::now();
-            let result = self
-                .pool
-                .install(|| catch_unwind(AssertUnwindSafe(|| state.finish(&ctx))))
-                .unwrap_or_else(|p| {
-                    Err(OpError::failed(format!(
-                        "operator panicked: {}",
-                        panic_message(p.as_ref())
-                    )))
-                });
-            if let Ok(mut b) = self.busy.lock() {
-                b.1 += t0.elapsed();
-            }
+            let result = guarded(self.pool, || state.finish(&ctx));
+            self.account_time(t0.elapsed());
             match result {
                 Ok(mut out) => {
                     if let Ok(mut f) = finals.lock() {

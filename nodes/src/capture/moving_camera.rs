@@ -20,6 +20,7 @@ use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Pose, Scene, SceneCamera, Value};
 
 use super::moving::MAX_FRAMES;
+use crate::geometry::camera::{from_na, to_na};
 use crate::geometry::pose_util::skew;
 use crate::render::raster::{Cull, RasterOptions, rasterize_view};
 use crate::render::scene::View;
@@ -70,26 +71,6 @@ pub fn se3_exp(xi: [f64; 6]) -> (Matrix3<f64>, Vector3<f64>) {
     (r, vm * v)
 }
 
-/// A row-major 3×3 array as a matrix.
-fn matrix(r: &[f64; 9]) -> Matrix3<f64> {
-    Matrix3::from_row_slice(r)
-}
-
-/// A matrix as a row-major 3×3 array.
-fn row_major(m: &Matrix3<f64>) -> [f64; 9] {
-    [
-        m[(0, 0)],
-        m[(0, 1)],
-        m[(0, 2)],
-        m[(1, 0)],
-        m[(1, 1)],
-        m[(1, 2)],
-        m[(2, 0)],
-        m[(2, 1)],
-        m[(2, 2)],
-    ]
-}
-
 /// One step of the motion, `dt` seconds at the body velocity `xi`:
 /// `world_from_camera ← world_from_camera · exp(dt·xi)`, computed on the `camera_from_world`
 /// pose as `camera_from_world ← exp(−dt·xi) · camera_from_world` (the same motion, without
@@ -102,9 +83,9 @@ pub fn step_pose(camera_from_world: &Pose, xi: [f64; 6], dt: f64) -> Pose {
         return *camera_from_world;
     }
     let (dr, dtrans) = se3_exp(motion);
-    let r = dr * matrix(&camera_from_world.rotation_matrix());
+    let r = dr * to_na(&camera_from_world.rotation_matrix());
     let t = dr * Vector3::from(camera_from_world.translation) + dtrans;
-    Pose::from_rotation_matrix(&row_major(&r), [t.x, t.y, t.z])
+    Pose::from_rotation_matrix(&from_na(&r), [t.x, t.y, t.z])
 }
 
 params! {
@@ -596,7 +577,7 @@ mod tests {
 
     fn rt(pose: &Pose) -> (Matrix3<f64>, Vector3<f64>) {
         (
-            matrix(&pose.rotation_matrix()),
+            to_na(&pose.rotation_matrix()),
             Vector3::from(pose.translation),
         )
     }
