@@ -11,13 +11,16 @@ pub mod detect;
 pub mod filter;
 pub mod geometry;
 pub mod io;
+pub mod learn;
 /// The `match` family (descriptor and patch matching); `match` is a keyword, hence the name.
 pub mod matching;
 pub mod mesh;
 pub mod optimize;
 pub mod render;
 pub mod segment;
+pub mod sensor;
 pub mod sfm;
+pub mod texture;
 pub mod video;
 
 use ocellus_engine::op::{Registry, RegistryError};
@@ -193,6 +196,14 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<mesh::depth_mesh::FromDepth>()?;
     registry.register::<mesh::tsdf::TsdfFusion>()?;
     registry.register::<mesh::deform::Deform>()?;
+    // Decomposition, learning, sensor simulation, synthesis and compression: each family
+    // registers its own operators.
+    analyze::register_decomposition(registry)?;
+    learn::register(registry)?;
+    sensor::register(registry)?;
+    texture::register(registry)?;
+    video::register_codec(registry)?;
+    sfm::register_visual_hull(registry)?;
     Ok(())
 }
 

