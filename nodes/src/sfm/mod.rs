@@ -6,11 +6,12 @@ pub mod incremental;
 pub mod pairs;
 pub mod stereo;
 pub mod tracks;
+pub mod visual_hull;
 
 /// Registers the visual-hull operators.
 pub fn register_visual_hull(
     registry: &mut ocellus_engine::op::Registry,
 ) -> Result<(), ocellus_engine::op::RegistryError> {
-    let _ = registry;
+    registry.register::<visual_hull::VisualHullOp>()?;
     Ok(())
 }
