@@ -150,8 +150,7 @@ impl FaceShape {
         }
         // Nose: a shadowed vertical bar below the eyes.
         let nose_top = self.eye_v + self.eye_radius;
-        if u.abs() <= FEATURE_HALF_THICKNESS && v >= nose_top && v <= nose_top + self.nose_length
-        {
+        if u.abs() <= FEATURE_HALF_THICKNESS && v >= nose_top && v <= nose_top + self.nose_length {
             return 0.7 * skin;
         }
         // Mouth: a parabolic arc.
@@ -373,8 +372,14 @@ mod tests {
 
     #[test]
     fn deterministic_for_any_thread_count() {
-        let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
-        let three = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+        let one = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        let three = rayon::ThreadPoolBuilder::new()
+            .num_threads(3)
+            .build()
+            .unwrap();
         let a = one.install(|| face_set(9, 20, 24, 0.05, 4));
         let b = three.install(|| face_set(9, 20, 24, 0.05, 4));
         assert_eq!(a, b);

@@ -355,7 +355,11 @@ mod tests {
             let (x, y) = ((i % n) as f64 - c, (i / n) as f64 - c);
             let r2 = x * x + y * y;
             if r2 <= 64.0 {
-                assert!((recon[i] - 1.0).abs() < 0.05, "inside {x},{y}: {}", recon[i]);
+                assert!(
+                    (recon[i] - 1.0).abs() < 0.05,
+                    "inside {x},{y}: {}",
+                    recon[i]
+                );
             } else if r2 >= 20.0 * 20.0 {
                 assert!(recon[i].abs() < 0.05, "outside {x},{y}: {}", recon[i]);
             }
@@ -389,8 +393,14 @@ mod tests {
             bins: covering_bins(n, n),
         };
         let run = || fbp(&radon(&truth, n, n, &g, 0.5), &g, RampWindow::Hamming, n);
-        let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
-        let three = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+        let one = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        let three = rayon::ThreadPoolBuilder::new()
+            .num_threads(3)
+            .build()
+            .unwrap();
         assert_eq!(one.install(run), three.install(run));
     }
 

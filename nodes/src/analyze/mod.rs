@@ -1,5 +1,7 @@
 //! Measurements on values.
 
+#[cfg(test)]
+mod decompose_tables;
 pub mod depth_agreement;
 pub mod disparity_error;
 pub mod evaluate;

@@ -183,9 +183,8 @@ impl Operator for Pca {
         }
         let mse = sq / count.max(1) as f64;
 
-        let to_f32_image = |v: &[f64]| {
-            image_from_f64(w, h, channels, Depth::F32, v).map_err(OpError::failed)
-        };
+        let to_f32_image =
+            |v: &[f64]| image_from_f64(w, h, channels, Depth::F32, v).map_err(OpError::failed);
         let mean = to_f32_image(&model.mean)?;
         let eigenimages = (0..k)
             .map(|j| to_f32_image(model.component(j)).map(Value::image))
@@ -202,7 +201,8 @@ impl Operator for Pca {
             cumulative += l;
             table.extend([l, share(l, total), share(cumulative, total)]);
         }
-        let eigenvalues = Matrix::new(model.rank(), 3, table).map_err(|e| OpError::failed(e.to_string()))?;
+        let eigenvalues =
+            Matrix::new(model.rank(), 3, table).map_err(|e| OpError::failed(e.to_string()))?;
         let coefficients = Matrix::new(data.len(), k, coefficients.concat())
             .map_err(|e| OpError::failed(e.to_string()))?;
 
@@ -222,7 +222,10 @@ impl Operator for Pca {
             .with("eigenimages", Value::list(PortType::Image, eigenimages))
             .with("eigenvalues", Value::Matrix(Arc::new(eigenvalues)))
             .with("coefficients", Value::Matrix(Arc::new(coefficients)))
-            .with("reconstructions", Value::list(PortType::Image, reconstructions))
+            .with(
+                "reconstructions",
+                Value::list(PortType::Image, reconstructions),
+            )
             .with("metrics", Value::metrics(metrics)))
     }
 }
@@ -484,7 +487,11 @@ pub fn pca_with(data: &[Vec<f64>], use_gram: bool) -> Result<PcaModel, String> {
     let matrix = DMatrix::from_fn(dim, dim, |i, j| rows[i][j]);
     let eigen = SymmetricEigen::new(matrix);
     let mut order: Vec<usize> = (0..dim).collect();
-    order.sort_by(|&a, &b| eigen.eigenvalues[b].total_cmp(&eigen.eigenvalues[a]).then(a.cmp(&b)));
+    order.sort_by(|&a, &b| {
+        eigen.eigenvalues[b]
+            .total_cmp(&eigen.eigenvalues[a])
+            .then(a.cmp(&b))
+    });
     let largest = order.first().map_or(0.0, |&i| eigen.eigenvalues[i]);
     let max_rank = (n - 1).min(d);
     for &i in order.iter().take(max_rank) {
@@ -560,7 +567,12 @@ mod tests {
         let offset = |e: &[f64], s: f64| -> Vec<f64> {
             mean.iter().zip(e).map(|(m, v)| m + s * v).collect()
         };
-        let data = vec![offset(&e1, a), offset(&e1, -a), offset(&e2, b), offset(&e2, -b)];
+        let data = vec![
+            offset(&e1, a),
+            offset(&e1, -a),
+            offset(&e2, b),
+            offset(&e2, -b),
+        ];
         (data, e1, e2)
     }
 
@@ -608,7 +620,10 @@ mod tests {
         assert_eq!(c.rank(), 11);
         for j in 0..11 {
             assert!((g.eigenvalues[j] - c.eigenvalues[j]).abs() < 1e-9 * g.eigenvalues[0]);
-            assert!((dot(g.component(j), c.component(j)) - 1.0).abs() < 1e-8, "{j}");
+            assert!(
+                (dot(g.component(j), c.component(j)) - 1.0).abs() < 1e-8,
+                "{j}"
+            );
         }
     }
 

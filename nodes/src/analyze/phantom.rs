@@ -133,7 +133,8 @@ pub struct Phantom {
 impl Op for Phantom {
     type Params = PhantomParams;
     const ID: &'static str = "analyze.phantom";
-    const SUMMARY: &'static str = "Draws the modified Shepp–Logan head phantom (tomography test image).";
+    const SUMMARY: &'static str =
+        "Draws the modified Shepp–Logan head phantom (tomography test image).";
     const DOC: &'static str = r#"
 Draws the modified Shepp–Logan phantom of Toft — the head phantom of L. A. Shepp and B. F.
 Logan ("The Fourier reconstruction of a head section", IEEE Trans. Nucl. Sci. 21, 1974) with
@@ -218,7 +219,11 @@ mod tests {
                         .map(|i| {
                             let t = -2.0 + (i as f64 + 0.5) * dt;
                             let (x, y) = (s * ct - t * st, s * st + t * ct);
-                            if e.contains(x, y) { e.intensity * dt } else { 0.0 }
+                            if e.contains(x, y) {
+                                e.intensity * dt
+                            } else {
+                                0.0
+                            }
                         })
                         .sum();
                     assert!((exact - numeric).abs() < 1e-3, "{exact} vs {numeric}");

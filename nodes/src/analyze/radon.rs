@@ -52,7 +52,10 @@ impl Geometry {
 
 /// Bins that cover a `width × height` image at every angle: ⌈√(w² + h²)⌉, at least 1.
 pub fn covering_bins(width: usize, height: usize) -> usize {
-    ((width * width + height * height) as f64).sqrt().ceil().max(1.0) as usize
+    ((width * width + height * height) as f64)
+        .sqrt()
+        .ceil()
+        .max(1.0) as usize
 }
 
 /// Bilinear sample of the row-major `width × height` image at pixel coordinates (col, row),
@@ -137,7 +140,8 @@ pub struct Radon {
 impl Op for Radon {
     type Params = RadonParams;
     const ID: &'static str = "analyze.radon";
-    const SUMMARY: &'static str = "Computes the sinogram (parallel-beam Radon transform) of a gray image.";
+    const SUMMARY: &'static str =
+        "Computes the sinogram (parallel-beam Radon transform) of a gray image.";
     const DOC: &'static str = r#"
 The parallel-beam Radon transform (J. Radon, "Über die Bestimmung von Funktionen durch ihre
 Integralwerte längs gewisser Mannigfaltigkeiten", 1917): for every angle θᵢ = i·range/angles
@@ -182,7 +186,9 @@ Example:
             ray_step_px,
         } = params;
         if !(1..=MAX_ANGLES).contains(&angles) {
-            return Err(format!("`angles` must be in 1..={MAX_ANGLES}, got {angles}"));
+            return Err(format!(
+                "`angles` must be in 1..={MAX_ANGLES}, got {angles}"
+            ));
         }
         if !(angle_range_deg.is_finite() && angle_range_deg > 0.0 && angle_range_deg <= 360.0) {
             return Err(format!(
@@ -288,7 +294,11 @@ mod tests {
         for i in 0..g.angles {
             for j in 0..g.bins {
                 let s = g.bin_offset_px(j);
-                let chord = if s.abs() < r { 2.0 * (r * r - s * s).sqrt() } else { 0.0 };
+                let chord = if s.abs() < r {
+                    2.0 * (r * r - s * s).sqrt()
+                } else {
+                    0.0
+                };
                 let got = sino[i * g.bins + j];
                 // Away from the rim (where the chord's slope is unbounded) the pixelated disc
                 // matches the analytic chord closely.
@@ -318,7 +328,10 @@ mod tests {
         let sino = radon(&pixels, w, h, &g, 0.25);
         for i in 0..g.angles {
             let mass: f64 = sino[i * g.bins..(i + 1) * g.bins].iter().sum();
-            assert!((mass / total - 1.0).abs() < 0.01, "angle {i}: {mass} vs {total}");
+            assert!(
+                (mass / total - 1.0).abs() < 0.01,
+                "angle {i}: {mass} vs {total}"
+            );
         }
         // θ = 0: rays are columns (up to the half-pixel centring of an odd width the column
         // sums themselves).
@@ -330,7 +343,10 @@ mod tests {
         let s0 = radon(&pixels, w, h, &g0, 0.25);
         for (col, &got) in s0.iter().enumerate() {
             let column: f64 = (0..h).map(|row| pixels[row * w + col]).sum();
-            assert!((got - column).abs() < 0.05 * (1.0 + column), "{col}: {got} vs {column}");
+            assert!(
+                (got - column).abs() < 0.05 * (1.0 + column),
+                "{col}: {got} vs {column}"
+            );
         }
     }
 

@@ -154,17 +154,26 @@ impl Operator for SvdCompress {
         metrics.insert("eckart_young_error".into(), discarded.sqrt());
         metrics.insert(
             "relative_frobenius_error".into(),
-            if norm2 > 0.0 { (err2 / norm2).sqrt() } else { 0.0 },
+            if norm2 > 0.0 {
+                (err2 / norm2).sqrt()
+            } else {
+                0.0
+            },
         );
         metrics.insert(
             "energy_kept".into(),
-            if total > 0.0 { 1.0 - discarded / total } else { 1.0 },
+            if total > 0.0 {
+                1.0 - discarded / total
+            } else {
+                1.0
+            },
         );
         metrics.insert("mse".into(), errors.mse);
         if let Some(p) = psnr_db(errors.mse, default_range(image)) {
             metrics.insert("psnr_db".into(), p);
         }
-        let singular_values = Matrix::new(c, w.min(h), sigmas).map_err(|e| OpError::failed(e.to_string()))?;
+        let singular_values =
+            Matrix::new(c, w.min(h), sigmas).map_err(|e| OpError::failed(e.to_string()))?;
         Ok(Outputs::new()
             .with("image", Value::image(output))
             .with("singular_values", Value::Matrix(Arc::new(singular_values)))
@@ -232,7 +241,10 @@ mod tests {
         // A = u·vᵀ has one singular value ‖u‖·‖v‖ and is rebuilt exactly at rank 1.
         let u = [1.0, 2.0, 2.0];
         let v = [3.0, 0.0, 4.0, 0.0];
-        let a: Vec<f64> = u.iter().flat_map(|&x| v.iter().map(move |&y| x * y)).collect();
+        let a: Vec<f64> = u
+            .iter()
+            .flat_map(|&x| v.iter().map(move |&y| x * y))
+            .collect();
         let r = low_rank(&a, 4, 3, 1);
         assert!((r.singular_values[0] - 15.0).abs() < 1e-12);
         assert!(r.singular_values[1..].iter().all(|s| s.abs() < 1e-12));
@@ -266,7 +278,9 @@ mod tests {
         let data: Vec<u8> = (0..w * h)
             .map(|i| {
                 let (x, y) = ((i % w) as f64, (i / w) as f64);
-                let v = 128.0 + 60.0 * (x / 7.0).sin() * (y / 9.0).cos() + 30.0 * (x * y / 300.0).cos()
+                let v = 128.0
+                    + 60.0 * (x / 7.0).sin() * (y / 9.0).cos()
+                    + 30.0 * (x * y / 300.0).cos()
                     + rng.normal(0.0, 2.0);
                 v.round().clamp(0.0, 255.0) as u8
             })
