@@ -13,6 +13,7 @@ const SNAPSHOTTED: &[&str] = &[
     "bal.ron",
     "bundle_adjust.ron",
     "calibrate.ron",
+    "decompose.ron",
     "edges.ron",
     "features.ron",
     "filters.ron",
@@ -122,6 +123,11 @@ fn ransac_fundamental() {
 #[test]
 fn lines() {
     check_graph("lines.ron");
+}
+
+#[test]
+fn decompose() {
+    check_graph("decompose.ron");
 }
 
 #[test]
