@@ -80,7 +80,14 @@ pub fn linear_data(
         }
         y.push(t + rng.normal(0.0, noise_sigma));
     }
-    (Matrix { rows: n, cols: d, data: x }, y)
+    (
+        Matrix {
+            rows: n,
+            cols: d,
+            data: x,
+        },
+        y,
+    )
 }
 
 /// `n` samples of `classes` isotropic Gaussian blobs in `features` dimensions (σ =
@@ -237,7 +244,15 @@ impl Operator for Dataset {
                 let mut t = vec![p.bias];
                 t.extend_from_slice(&p.weights);
                 let rows = t.len();
-                (x, y, Matrix { rows, cols: 1, data: t })
+                (
+                    x,
+                    y,
+                    Matrix {
+                        rows,
+                        cols: 1,
+                        data: t,
+                    },
+                )
             }
             DatasetKind::Blobs => blobs(
                 n,

@@ -157,7 +157,11 @@ pub fn train_detector(
         .map(|i| {
             let (tx, ty) = ((i % cols) * ww, (i / cols) * wh);
             let px: Vec<f32> = (0..wh)
-                .flat_map(|y| gray[(ty + y) * mw + tx..(ty + y) * mw + tx + ww].iter().copied())
+                .flat_map(|y| {
+                    gray[(ty + y) * mw + tx..(ty + y) * mw + tx + ww]
+                        .iter()
+                        .copied()
+                })
                 .collect();
             let tile = Image::from_f32(ww, wh, Channels::Gray, px).map_err(|e| e.to_string())?;
             window_descriptor(&tile, &config.hog)
@@ -165,7 +169,10 @@ pub fn train_detector(
         .collect::<Result<_, _>>()?;
     let dim = rows.first().map_or(0, Vec::len);
     let x = Matrix::new(labels.len(), dim, rows.concat()).map_err(|e| e.to_string())?;
-    let y: Vec<f64> = labels.iter().map(|&l| f64::from(u8::from(l != 0.0))).collect();
+    let y: Vec<f64> = labels
+        .iter()
+        .map(|&l| f64::from(u8::from(l != 0.0)))
+        .collect();
     let positives = y.iter().filter(|&&v| v == 1.0).count();
     if positives == 0 || positives == y.len() {
         return Err("`labels` needs both figure (nonzero) and background (0) windows".into());
@@ -239,7 +246,8 @@ pub fn detect(
             config.window_w, config.window_h
         ));
     }
-    let base = Image::from_f32(sw, sh, Channels::Gray, gray_f32(scene)).map_err(|e| e.to_string())?;
+    let base =
+        Image::from_f32(sw, sh, Channels::Gray, gray_f32(scene)).map_err(|e| e.to_string())?;
     let cell = config.hog.cell_size as usize;
     let (wbx, wby) = config.blocks();
     let stride = config.stride_cells;
@@ -319,7 +327,11 @@ pub struct DetectionScores {
 /// Matches `ranked` (decreasing score) to `truth` greedily — each detection to the unmatched
 /// truth box of highest IoU ≥ [`MATCH_IOU`] — and measures precision and recall of those
 /// scoring ≥ `threshold` and the average precision of all.
-pub fn evaluate_detections(ranked: &[Detection], truth: &[[f64; 4]], threshold: f64) -> DetectionScores {
+pub fn evaluate_detections(
+    ranked: &[Detection],
+    truth: &[[f64; 4]],
+    threshold: f64,
+) -> DetectionScores {
     let mut used = vec![false; truth.len()];
     let tp: Vec<bool> = ranked
         .iter()
@@ -387,7 +399,8 @@ fn overlay(scene: &Image, truth: &[[f64; 4]], dets: &[Detection]) -> Result<Imag
         let y0 = (b[1].round().max(0.0) as usize).min(h - 1);
         let x1 = ((b[0] + b[2]).round().max(0.0) as usize).clamp(1, w) - 1;
         let y1 = ((b[1] + b[3]).round().max(0.0) as usize).clamp(1, h) - 1;
-        let mut put = |x: usize, y: usize| rgb[(y * w + x) * 3..(y * w + x) * 3 + 3].copy_from_slice(&colour);
+        let mut put =
+            |x: usize, y: usize| rgb[(y * w + x) * 3..(y * w + x) * 3 + 3].copy_from_slice(&colour);
         for x in x0..=x1.max(x0) {
             put(x, y0);
             put(x, y1.max(y0));
@@ -416,8 +429,7 @@ pub struct HogDetector {
 impl Op for HogDetector {
     type Params = HogDetectorParams;
     const ID: &'static str = "learn.hog_detector";
-    const SUMMARY: &'static str =
-        "Trains a HOG + logistic-regression window classifier and detects at multiple scales with NMS.";
+    const SUMMARY: &'static str = "Trains a HOG + logistic-regression window classifier and detects at multiple scales with NMS.";
     const DOC: &'static str = r#"
 The Dalal–Triggs detector (N. Dalal, B. Triggs, "Histograms of Oriented Gradients for Human
 Detection", CVPR 2005) with logistic regression in place of the linear SVM:
@@ -499,7 +511,10 @@ Example:
         if !(2..=32).contains(&cell) {
             return Err(format!("`cell_size` must be between 2 and 32, got {cell}"));
         }
-        if p.window.iter().any(|&v| v % cell != 0 || v < 2 * cell || v > 1024) {
+        if p.window
+            .iter()
+            .any(|&v| v % cell != 0 || v < 2 * cell || v > 1024)
+        {
             return Err(format!(
                 "`window` sides must be multiples of `cell_size` ({cell}), at least two cells and at most 1024 px, got {:?}",
                 p.window
@@ -511,7 +526,10 @@ Example:
         if !(p.scale_step.is_finite() && p.scale_step > 1.0) {
             return Err(format!("`scale_step` must be > 1, got {}", p.scale_step));
         }
-        for (name, v) in [("score_threshold", p.score_threshold), ("nms_iou", p.nms_iou)] {
+        for (name, v) in [
+            ("score_threshold", p.score_threshold),
+            ("nms_iou", p.nms_iou),
+        ] {
             if !(0.0..=1.0).contains(&v) {
                 return Err(format!("`{name}` must be in [0, 1], got {v}"));
             }
@@ -562,12 +580,18 @@ impl Operator for HogDetector {
                         format!("must be a finite m × 4 matrix, got {}×{}", m.rows, m.cols),
                     ));
                 }
-                Some(m.data.chunks_exact(4).map(|r| [r[0], r[1], r[2], r[3]]).collect())
+                Some(
+                    m.data
+                        .chunks_exact(4)
+                        .map(|r| [r[0], r[1], r[2], r[3]])
+                        .collect(),
+                )
             }
         };
         let detector = train_detector(training, &labels, &self.config)
             .map_err(|e| OpError::input("training", e))?;
-        let report = detect(scene, &detector, &self.config).map_err(|e| OpError::input("scene", e))?;
+        let report =
+            detect(scene, &detector, &self.config).map_err(|e| OpError::input("scene", e))?;
         let reported: Vec<Detection> = report
             .candidates
             .iter()
@@ -591,7 +615,8 @@ impl Operator for HogDetector {
             .iter()
             .flat_map(|d| [d.bbox[0], d.bbox[1], d.bbox[2], d.bbox[3], d.score])
             .collect();
-        let image = overlay(scene, truth.as_deref().unwrap_or(&[]), &reported).map_err(OpError::failed)?;
+        let image =
+            overlay(scene, truth.as_deref().unwrap_or(&[]), &reported).map_err(OpError::failed)?;
         Ok(Outputs::new()
             .with("boxes", matrix_value(reported.len(), 5, rows)?)
             .with("metrics", Value::metrics(m))
@@ -603,7 +628,6 @@ impl Operator for HogDetector {
 mod tests {
     use super::*;
     use crate::learn::pedestrians::{PedestrianParams, pedestrian_set};
-    use ocellus_engine::op::Op;
 
     #[test]
     fn iou_and_nms_by_hand() {
@@ -612,12 +636,24 @@ mod tests {
         assert!((iou(&a, &b) - 50.0 / 150.0).abs() < 1e-12);
         assert_eq!(iou(&a, &[20.0, 20.0, 1.0, 1.0]), 0.0);
         let dets = vec![
-            Detection { bbox: a, score: 0.6 },
-            Detection { bbox: b, score: 0.9 },
-            Detection { bbox: [30.0, 0.0, 10.0, 10.0], score: 0.7 },
+            Detection {
+                bbox: a,
+                score: 0.6,
+            },
+            Detection {
+                bbox: b,
+                score: 0.9,
+            },
+            Detection {
+                bbox: [30.0, 0.0, 10.0, 10.0],
+                score: 0.7,
+            },
         ];
         let kept = non_maximum_suppression(dets.clone(), 0.3);
-        assert_eq!(kept.iter().map(|d| d.score).collect::<Vec<_>>(), vec![0.9, 0.7]);
+        assert_eq!(
+            kept.iter().map(|d| d.score).collect::<Vec<_>>(),
+            vec![0.9, 0.7]
+        );
         // IoU 1/3 is not above 0.4: all kept.
         assert_eq!(non_maximum_suppression(dets, 0.4).len(), 3);
     }
@@ -625,7 +661,10 @@ mod tests {
     #[test]
     fn voc_evaluation_by_hand() {
         let truth = [[0.0, 0.0, 10.0, 10.0], [50.0, 0.0, 10.0, 10.0]];
-        let d = |x: f64, s: f64| Detection { bbox: [x, 0.0, 10.0, 10.0], score: s };
+        let d = |x: f64, s: f64| Detection {
+            bbox: [x, 0.0, 10.0, 10.0],
+            score: s,
+        };
         // Ranked: hit, miss, hit → precisions 1, ½, ⅔ at recalls ½, ½, 1: AP = ½·1 + ½·⅔.
         let ranked = [d(0.0, 0.9), d(25.0, 0.8), d(51.0, 0.4)];
         let s = evaluate_detections(&ranked, &truth, 0.5);
@@ -662,7 +701,17 @@ mod tests {
     fn mismatched_mosaic_is_an_error() {
         let op = HogDetector::new(HogDetectorParams::default()).unwrap();
         let img = Image::from_f32(40, 64, Channels::Gray, vec![0.0; 40 * 64]).unwrap();
-        assert!(train_detector(&img, &[1.0], &op.config).unwrap_err().contains("mosaic"));
-        assert!(HogDetector::new(HogDetectorParams { window: [30, 64], ..Default::default() }).is_err());
+        assert!(
+            train_detector(&img, &[1.0], &op.config)
+                .unwrap_err()
+                .contains("mosaic")
+        );
+        assert!(
+            HogDetector::new(HogDetectorParams {
+                window: [30, 64],
+                ..Default::default()
+            })
+            .is_err()
+        );
     }
 }

@@ -162,7 +162,10 @@ mod tests {
             tolerance: 1e-10,
         };
         let m = lbfgs(rosenbrock, vec![-1.2, 1.0], &c).unwrap();
-        assert!((m.x[0] - 1.0).abs() < 1e-8 && (m.x[1] - 1.0).abs() < 1e-8, "{m:?}");
+        assert!(
+            (m.x[0] - 1.0).abs() < 1e-8 && (m.x[1] - 1.0).abs() < 1e-8,
+            "{m:?}"
+        );
         assert!(m.gradient_norm < 1e-10);
         assert!(m.curve.windows(2).all(|w| w[1] <= w[0]));
         assert!(m.iterations < 100, "{} iterations", m.iterations);
@@ -174,7 +177,9 @@ mod tests {
         let diag = [1.0, 10.0, 100.0, 3.0];
         let b = [1.0, 2.0, 3.0, 4.0];
         let f = |x: &[f64]| {
-            let v: f64 = (0..4).map(|i| 0.5 * diag[i] * x[i] * x[i] - b[i] * x[i]).sum();
+            let v: f64 = (0..4)
+                .map(|i| 0.5 * diag[i] * x[i] * x[i] - b[i] * x[i])
+                .sum();
             let g = (0..4).map(|i| diag[i] * x[i] - b[i]).collect();
             (v, g)
         };

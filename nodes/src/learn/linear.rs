@@ -258,9 +258,9 @@ pub fn linear_regression(
                         }
                     }
                     let m = idx.len() as f64;
-                    for j in 0..p {
-                        let reg = if j > 0 { l2 * theta[j] } else { 0.0 };
-                        theta[j] -= lr * (g[j] / m + reg);
+                    for (j, (t, gj)) in theta.iter_mut().zip(&g).enumerate() {
+                        let reg = if j > 0 { l2 * *t } else { 0.0 };
+                        *t -= lr * (gj / m + reg);
                     }
                 }
                 let (loss, gr) = objective(&design, y, &theta, l2);
@@ -344,11 +344,7 @@ Example:
 
     fn inputs() -> Vec<PortSpec> {
         vec![
-            PortSpec::new(
-                "x",
-                PortType::Matrix,
-                "n × d features, one row per sample.",
-            ),
+            PortSpec::new("x", PortType::Matrix, "n × d features, one row per sample."),
             PortSpec::new("y", PortType::Matrix, "n × 1 targets."),
         ]
     }
@@ -410,7 +406,8 @@ Example:
 impl Operator for LinearRegression {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
         let x = input_matrix(inputs, "x")?;
-        let y = single_column(input_matrix(inputs, "y")?, "y").map_err(|e| OpError::input("y", e))?;
+        let y =
+            single_column(input_matrix(inputs, "y")?, "y").map_err(|e| OpError::input("y", e))?;
         let fit = linear_regression(x, &y, &self.config).map_err(|e| OpError::input("x", e))?;
         let mut m = Metrics::new();
         m.insert("mse".into(), fit.mse);
@@ -485,10 +482,20 @@ mod tests {
         )
         .unwrap();
         for (a, b) in gd.weights.iter().zip(&exact.weights) {
-            assert!((a - b).abs() < 1e-6, "gd {:?} vs {:?}", gd.weights, exact.weights);
+            assert!(
+                (a - b).abs() < 1e-6,
+                "gd {:?} vs {:?}",
+                gd.weights,
+                exact.weights
+            );
         }
         for (a, b) in sgd.weights.iter().zip(&exact.weights) {
-            assert!((a - b).abs() < 0.02, "sgd {:?} vs {:?}", sgd.weights, exact.weights);
+            assert!(
+                (a - b).abs() < 0.02,
+                "sgd {:?} vs {:?}",
+                sgd.weights,
+                exact.weights
+            );
         }
         // Known parameters recovered within the noise.
         for (a, b) in exact.weights.iter().zip(truth) {
@@ -532,7 +539,10 @@ mod tests {
         let x = Matrix::new(20, 2, data).unwrap();
         let y: Vec<f64> = (0..20).map(|i| i as f64).collect();
         let e = linear_regression(&x, &y, &config(LinearSolver::NormalEquation)).unwrap_err();
-        assert!(e.contains("rank deficient") && e.contains("feature 1"), "{e}");
+        assert!(
+            e.contains("rank deficient") && e.contains("feature 1"),
+            "{e}"
+        );
         let c = LinearConfig {
             l2: 1e-3,
             ..config(LinearSolver::NormalEquation)
@@ -548,7 +558,11 @@ mod tests {
             learning_rate: 1.0,
             ..config(LinearSolver::BatchGd)
         };
-        assert!(linear_regression(&x, &y, &c).unwrap_err().contains("diverged"));
+        assert!(
+            linear_regression(&x, &y, &c)
+                .unwrap_err()
+                .contains("diverged")
+        );
         assert!(linear_regression(&x, &y[..10], &config(LinearSolver::BatchGd)).is_err());
     }
 

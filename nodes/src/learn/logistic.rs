@@ -188,7 +188,11 @@ fn hessian(design: &Design, theta: &[f64], l2: f64) -> DMatrix<f64> {
 }
 
 /// Fits one binary model (targets 0/1) with the configured solver.
-pub fn fit_binary(design: &Design, y: &[f64], config: &LogisticConfig) -> Result<BinaryFit, String> {
+pub fn fit_binary(
+    design: &Design,
+    y: &[f64],
+    config: &LogisticConfig,
+) -> Result<BinaryFit, String> {
     let p = design.p;
     let l2 = config.l2;
     let objective = |t: &[f64]| binary_objective(design, y, t, l2);
@@ -257,7 +261,11 @@ pub fn fit_binary(design: &Design, y: &[f64], config: &LogisticConfig) -> Result
                     if let Some(c) = hd.cholesky() {
                         break c.solve(&rhs);
                     }
-                    damping = if damping == 0.0 { 1e-12 * scale } else { damping * 10.0 };
+                    damping = if damping == 0.0 {
+                        1e-12 * scale
+                    } else {
+                        damping * 10.0
+                    };
                     if damping > 1e12 * scale {
                         return Err("Newton: the Hessian could not be factorised".into());
                     }
@@ -275,7 +283,9 @@ pub fn fit_binary(design: &Design, y: &[f64], config: &LogisticConfig) -> Result
                     }
                     alpha *= 0.5;
                 }
-                let Some((tn, fnew, gnew)) = accepted else { break };
+                let Some((tn, fnew, gnew)) = accepted else {
+                    break;
+                };
                 theta = tn;
                 fx = fnew;
                 g = gnew;
@@ -333,7 +343,10 @@ pub fn class_labels(y: &[f64]) -> Result<(Vec<usize>, usize), String> {
     let mut counts = vec![0usize; k];
     out.iter().for_each(|&c| counts[c] += 1);
     if let Some(c) = counts.iter().position(|&c| c == 0) {
-        return Err(format!("`y` has no sample of class {c} (labels must be 0..{})", k - 1));
+        return Err(format!(
+            "`y` has no sample of class {c} (labels must be 0..{})",
+            k - 1
+        ));
     }
     Ok((out, k))
 }
@@ -360,7 +373,10 @@ pub fn logistic_regression(
     let fits: Vec<BinaryFit> = positives
         .par_iter()
         .map(|&c| {
-            let t: Vec<f64> = labels.iter().map(|&l| f64::from(u8::from(l == c))).collect();
+            let t: Vec<f64> = labels
+                .iter()
+                .map(|&l| f64::from(u8::from(l == c)))
+                .collect();
             fit_binary(&design, &t, config)
         })
         .collect::<Result<_, _>>()?;
@@ -385,9 +401,7 @@ pub fn logistic_regression(
     }
     let predicted = probabilities
         .chunks_exact(k)
-        .map(|row| {
-            (0..k).fold(0, |best, c| if row[c] > row[best] { c } else { best })
-        })
+        .map(|row| (0..k).fold(0, |best, c| if row[c] > row[best] { c } else { best }))
         .collect();
     let longest = fits.iter().map(|f| f.curve.len()).max().unwrap_or(1);
     let curve = (0..longest)
@@ -567,7 +581,8 @@ Example:
 impl Operator for LogisticRegression {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
         let x = input_matrix(inputs, "x")?;
-        let y = single_column(input_matrix(inputs, "y")?, "y").map_err(|e| OpError::input("y", e))?;
+        let y =
+            single_column(input_matrix(inputs, "y")?, "y").map_err(|e| OpError::input("y", e))?;
         let fit = logistic_regression(x, &y, &self.config).map_err(|e| OpError::input("x", e))?;
         let (labels, k) = class_labels(&y).map_err(|e| OpError::input("y", e))?;
         let mut metrics = classification_metrics(&fit, &labels);
@@ -581,7 +596,10 @@ impl Operator for LogisticRegression {
         } else {
             (
                 fit.probabilities.clone(),
-                labels.iter().flat_map(|&l| (0..k).map(move |c| c == l)).collect(),
+                labels
+                    .iter()
+                    .flat_map(|&l| (0..k).map(move |c| c == l))
+                    .collect(),
             )
         };
         let roc = roc_curve(&scores, &truth, self.roc_steps).map_err(OpError::failed)?;
@@ -641,7 +659,12 @@ mod tests {
         assert!(newton.gradient_norm < 1e-10 && lbfgs.gradient_norm < 1e-10);
         assert!(newton.iterations < 15, "{}", newton.iterations);
         for (a, b) in newton.weights[0].iter().zip(&lbfgs.weights[0]) {
-            assert!((a - b).abs() < 1e-7, "{:?} vs {:?}", newton.weights, lbfgs.weights);
+            assert!(
+                (a - b).abs() < 1e-7,
+                "{:?} vs {:?}",
+                newton.weights,
+                lbfgs.weights
+            );
         }
         let gd = logistic_regression(
             &x,
@@ -693,8 +716,15 @@ mod tests {
                 ..config(solver)
             };
             let fit = logistic_regression(&x, &y, &c).unwrap();
-            assert!(fit.probabilities.iter().all(|p| p.is_finite() && (0.0..=1.0).contains(p)));
-            assert!(fit.curve.iter().all(|v| v.is_finite()), "{scale} {solver:?}");
+            assert!(
+                fit.probabilities
+                    .iter()
+                    .all(|p| p.is_finite() && (0.0..=1.0).contains(p))
+            );
+            assert!(
+                fit.curve.iter().all(|v| v.is_finite()),
+                "{scale} {solver:?}"
+            );
             if scale {
                 let (labels, _) = class_labels(&y).unwrap();
                 assert!(classification_metrics(&fit, &labels)["accuracy"] > 0.9);
@@ -716,7 +746,8 @@ mod tests {
             }
             // Each model scores its own class's mean highest.
             for (c, w) in fit.weights.iter().enumerate() {
-                let score = |k: usize| w[0] + w[1] * means.data[2 * k] + w[2] * means.data[2 * k + 1];
+                let score =
+                    |k: usize| w[0] + w[1] * means.data[2 * k] + w[2] * means.data[2 * k + 1];
                 assert!((0..3).all(|k| k == c || score(c) > score(k)));
             }
             for row in fit.probabilities.chunks_exact(3) {

@@ -79,8 +79,8 @@ impl Design {
         let mut z = vec![0.0; n * p];
         for (row, xr) in z.chunks_exact_mut(p).zip(x.data.chunks_exact(d)) {
             row[0] = 1.0;
-            for j in 0..d {
-                row[j + 1] = (xr[j] - mean[j]) / scale[j];
+            for (((out, v), m), s) in row[1..].iter_mut().zip(xr).zip(&mean).zip(&scale) {
+                *out = (v - m) / s;
             }
         }
         Ok(Design {
@@ -97,9 +97,14 @@ impl Design {
     pub fn to_original(&self, theta: &[f64]) -> Vec<f64> {
         let mut out = theta.to_vec();
         let mut bias = theta[0];
-        for j in 0..self.p - 1 {
-            out[j + 1] = theta[j + 1] / self.scale[j];
-            bias -= out[j + 1] * self.mean[j];
+        for (((o, t), s), m) in out[1..]
+            .iter_mut()
+            .zip(&theta[1..])
+            .zip(&self.scale)
+            .zip(&self.mean)
+        {
+            *o = t / s;
+            bias -= *o * m;
         }
         out[0] = bias;
         out

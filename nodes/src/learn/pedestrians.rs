@@ -216,7 +216,12 @@ fn draw_figure(canvas: &mut Canvas, bx: [f64; 4], rng: &mut SplitMix64) {
 
 fn add_noise(canvas: &mut Canvas, sigma: f64, rng: &mut SplitMix64) {
     for p in &mut canvas.px {
-        let v = f64::from(*p) + if sigma > 0.0 { rng.normal(0.0, sigma) } else { 0.0 };
+        let v = f64::from(*p)
+            + if sigma > 0.0 {
+                rng.normal(0.0, sigma)
+            } else {
+                0.0
+            };
         *p = v.clamp(0.0, 1.0) as f32;
     }
 }
@@ -358,7 +363,8 @@ Example:
                 p.window
             ));
         }
-        if p.scene[0] < p.window[0] || p.scene[1] < p.window[1] || p.scene.iter().any(|&v| v > 8192) {
+        if p.scene[0] < p.window[0] || p.scene[1] < p.window[1] || p.scene.iter().any(|&v| v > 8192)
+        {
             return Err(format!(
                 "`scene` {:?} must be at least the window {:?} and at most 8192 px",
                 p.scene, p.window
