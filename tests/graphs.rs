@@ -18,6 +18,7 @@ const SNAPSHOTTED: &[&str] = &[
     "features.ron",
     "filters.ron",
     "homography.ron",
+    "learn.ron",
     "lines.ron",
     "mesh.ron",
     "poisson.ron",
@@ -88,6 +89,11 @@ fn filters() {
 #[test]
 fn homography() {
     check_graph("homography.ron");
+}
+
+#[test]
+fn learn() {
+    check_graph("learn.ron");
 }
 
 #[test]

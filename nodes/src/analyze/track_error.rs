@@ -406,7 +406,7 @@ impl Operator for TrackError {
 }
 
 /// Input `port` as a matrix.
-fn input_matrix<'a>(inputs: &Inputs<'a>, port: &str) -> Result<&'a Matrix, OpError> {
+pub(crate) fn input_matrix<'a>(inputs: &Inputs<'a>, port: &str) -> Result<&'a Matrix, OpError> {
     match inputs.require(port)? {
         Value::Matrix(m) => Ok(m),
         other => Err(OpError::input(
