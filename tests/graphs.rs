@@ -28,6 +28,7 @@ const SNAPSHOTTED: &[&str] = &[
     "reconstruct.ron",
     "render.ron",
     "segment.ron",
+    "sensor.ron",
     "servo.ron",
     "sfm.ron",
     "stereo.ron",
@@ -69,6 +70,11 @@ fn bal() {
 #[test]
 fn bundle_adjust() {
     check_graph("bundle_adjust.ron");
+}
+
+#[test]
+fn sensor() {
+    check_graph("sensor.ron");
 }
 
 #[test]

@@ -329,7 +329,7 @@ fn noisy<T: Sample>(src: &[T], channels: Channels, model: NoiseModel, seed: u64)
 
 /// splitmix64's output function (a bijective 64-bit mixer).
 #[inline]
-fn mix(mut z: u64) -> u64 {
+pub(crate) fn mix(mut z: u64) -> u64 {
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^ (z >> 31)
@@ -337,19 +337,19 @@ fn mix(mut z: u64) -> u64 {
 
 /// The `index`-th output of splitmix64 started at `key`: the random bits of one counter.
 #[inline]
-fn hash(key: u64, index: u64) -> u64 {
+pub(crate) fn hash(key: u64, index: u64) -> u64 {
     mix(key.wrapping_add(index.wrapping_add(1).wrapping_mul(GOLDEN)))
 }
 
 /// Uniform in [0, 1) with 53 random bits.
 #[inline]
-fn unit_f64(bits: u64) -> f64 {
+pub(crate) fn unit_f64(bits: u64) -> f64 {
     (bits >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
 }
 
 /// Standard normal deviates for samples `2·first_pair ..`, two per counter (Box–Muller: the
 /// cosine branch for the even sample, the sine branch for the odd one). `z.len()` is even.
-fn gaussian_pairs(key: u64, first_pair: usize, z: &mut [f32]) {
+pub(crate) fn gaussian_pairs(key: u64, first_pair: usize, z: &mut [f32]) {
     const UNIT: f32 = 1.0 / (1u32 << 24) as f32;
     for (j, pair) in z.chunks_exact_mut(2).enumerate() {
         let bits = hash(key, (first_pair + j) as u64);
@@ -364,7 +364,7 @@ fn gaussian_pairs(key: u64, first_pair: usize, z: &mut [f32]) {
 }
 
 /// A splitmix64 stream, for samples that need several uniforms.
-struct SplitMix(u64);
+pub(crate) struct SplitMix(pub(crate) u64);
 
 impl SplitMix {
     fn next_f64(&mut self) -> f64 {
@@ -387,7 +387,7 @@ fn ln_factorial(k: f64) -> f64 {
 }
 
 /// A Poisson deviate of mean `lambda` (finite, > 0), as f64.
-fn poisson(lambda: f64, rng: &mut SplitMix) -> f64 {
+pub(crate) fn poisson(lambda: f64, rng: &mut SplitMix) -> f64 {
     if lambda < POISSON_INVERSION_LIMIT {
         // Sequential search of the CDF.
         let mut u = rng.next_f64();
