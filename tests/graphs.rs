@@ -29,6 +29,7 @@ const SNAPSHOTTED: &[&str] = &[
     "servo.ron",
     "sfm.ron",
     "stereo.ron",
+    "texture.ron",
     "two_branches.ron",
     "track.ron",
     "two_view.ron",
@@ -67,6 +68,11 @@ fn bal() {
 #[test]
 fn bundle_adjust() {
     check_graph("bundle_adjust.ron");
+}
+
+#[test]
+fn texture() {
+    check_graph("texture.ron");
 }
 
 #[test]
