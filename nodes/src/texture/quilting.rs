@@ -277,9 +277,7 @@ pub fn quilt(source: &Texture, config: &QuiltConfig) -> Result<Quilt, String> {
                     vec![0; b]
                 };
                 for (y, &cut) in path.iter().enumerate() {
-                    for x in 0..cut {
-                        take_new[y * b + x] = false;
-                    }
+                    take_new[y * b..y * b + cut].fill(false);
                     seam.push((cut, y));
                 }
             }
@@ -364,22 +362,12 @@ pub fn min_cut_path(costs: &[f64], rows: usize, cols: usize) -> (Vec<usize>, f64
         for j in 0..cols {
             let lo = j.saturating_sub(1);
             let hi = (j + 1).min(cols - 1);
-            let mut best = lo;
-            for k in lo..=hi {
-                if prev[k] < prev[best] {
-                    best = k;
-                }
-            }
+            let best = (lo..=hi).fold(lo, |b, k| if prev[k] < prev[b] { k } else { b });
             from[i * cols + j] = best;
             total[j] = prev[best] + costs[i * cols + j];
         }
     }
-    let mut end = 0;
-    for j in 1..cols {
-        if total[j] < total[end] {
-            end = j;
-        }
-    }
+    let end = (1..cols).fold(0, |e, j| if total[j] < total[e] { j } else { e });
     let cost = total[end];
     let mut path = vec![0; rows];
     path[rows - 1] = end;

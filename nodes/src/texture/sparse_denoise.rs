@@ -195,7 +195,7 @@ Example:
                 "`stride_px` must be in 1..=patch_px ({patch_px}), got {stride_px}"
             ));
         }
-        let per_axis = (f64::from(atoms).sqrt().round()) as u32;
+        let per_axis = f64::from(atoms).sqrt().round() as u32;
         if per_axis * per_axis != atoms || per_axis < patch_px || per_axis > 4 * patch_px {
             return Err(format!(
                 "`atoms` must be k² with patch_px ≤ k ≤ 4·patch_px ({}..={} for {patch_px} px patches), got {atoms}",
