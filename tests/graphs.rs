@@ -32,6 +32,7 @@ const SNAPSHOTTED: &[&str] = &[
     "servo.ron",
     "sfm.ron",
     "stereo.ron",
+    "texture.ron",
     "two_branches.ron",
     "track.ron",
     "two_view.ron",
@@ -75,6 +76,8 @@ fn bundle_adjust() {
 #[test]
 fn sensor() {
     check_graph("sensor.ron");
+fn texture() {
+    check_graph("texture.ron");
 }
 
 #[test]
