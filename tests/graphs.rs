@@ -13,6 +13,7 @@ const SNAPSHOTTED: &[&str] = &[
     "bal.ron",
     "bundle_adjust.ron",
     "calibrate.ron",
+    "codec.ron",
     "edges.ron",
     "features.ron",
     "filters.ron",
@@ -122,6 +123,11 @@ fn ransac_fundamental() {
 #[test]
 fn lines() {
     check_graph("lines.ron");
+}
+
+#[test]
+fn codec() {
+    check_graph("codec.ron");
 }
 
 #[test]
