@@ -537,7 +537,7 @@ pub fn matrix_bytes(value: &Value) -> Result<Vec<u8>, OpError> {
     let Value::Matrix(m) = value else {
         return Err(OpError::input("bitstream", "expected a Matrix of bytes"));
     };
-    if m.cols != 1 && m.rows != 1 && m.data.len() > 0 {
+    if m.cols != 1 && m.rows != 1 && !m.data.is_empty() {
         return Err(OpError::input(
             "bitstream",
             format!(
