@@ -14,6 +14,7 @@ const SNAPSHOTTED: &[&str] = &[
     "bundle_adjust.ron",
     "calibrate.ron",
     "decompose.ron",
+    "codec.ron",
     "edges.ron",
     "features.ron",
     "filters.ron",
@@ -143,6 +144,8 @@ fn lines() {
 #[test]
 fn decompose() {
     check_graph("decompose.ron");
+fn codec() {
+    check_graph("codec.ron");
 }
 
 #[test]

@@ -322,8 +322,11 @@ fn sad_half(a: &Plane, b: &Plane, x0: usize, y0: usize, n: usize, hx: i64, hy: i
     Some(total)
 }
 
+/// The motion vector of the `n × n` block of `a` at (x0, y0) into `b`: the displacement
+/// `(dx, dy)` (`|dx|, |dy| ≤ search`) whose block of `b` at `(x0 + dx, y0 + dy)` has the least
+/// SAD, found by `method`, optionally refined to half pixels. Candidates leaving `b` are skipped.
 #[allow(clippy::too_many_arguments)]
-fn match_block(
+pub(crate) fn match_block(
     a: &Plane,
     b: &Plane,
     x0: usize,

@@ -1,6 +1,7 @@
 //! Video: motion between frames (feature tracking, optical flow, block matching).
 
 pub mod block_match;
+pub mod codec;
 pub mod dense_lk;
 pub mod filters;
 pub mod flow;
@@ -16,6 +17,5 @@ pub mod synth;
 pub fn register_codec(
     registry: &mut ocellus_engine::op::Registry,
 ) -> Result<(), ocellus_engine::op::RegistryError> {
-    let _ = registry;
-    Ok(())
+    codec::register(registry)
 }

@@ -128,12 +128,17 @@ fn pad_clamp(plane: &[f32], w: usize, h: usize, pw: usize, ph: usize) -> Vec<f32
 
 /// The orthonormal 8-point DCT-II matrix `C[k][n]`.
 pub fn dct_matrix() -> [[f32; BLOCK]; BLOCK] {
-    let mut c = [[0.0f32; BLOCK]; BLOCK];
+    dct_matrix_f64().map(|row| row.map(|v| v as f32))
+}
+
+/// The orthonormal 8-point DCT-II matrix `C[k][n] = c(k)·cos((2n + 1)kπ/16)` in f64.
+pub fn dct_matrix_f64() -> [[f64; BLOCK]; BLOCK] {
+    let mut c = [[0.0f64; BLOCK]; BLOCK];
     for (k, row) in c.iter_mut().enumerate() {
         let scale = if k == 0 { (0.125f64).sqrt() } else { 0.5 };
         for (n, v) in row.iter_mut().enumerate() {
             let angle = ((2 * n + 1) * k) as f64 * std::f64::consts::PI / 16.0;
-            *v = (scale * angle.cos()) as f32;
+            *v = scale * angle.cos();
         }
     }
     c
