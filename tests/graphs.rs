@@ -13,12 +13,13 @@ const SNAPSHOTTED: &[&str] = &[
     "bal.ron",
     "bundle_adjust.ron",
     "calibrate.ron",
-    "decompose.ron",
     "codec.ron",
+    "decompose.ron",
     "edges.ron",
     "features.ron",
     "filters.ron",
     "homography.ron",
+    "hull.ron",
     "learn.ron",
     "lines.ron",
     "mesh.ron",
@@ -34,8 +35,8 @@ const SNAPSHOTTED: &[&str] = &[
     "sfm.ron",
     "stereo.ron",
     "texture.ron",
-    "two_branches.ron",
     "track.ron",
+    "two_branches.ron",
     "two_view.ron",
 ];
 
@@ -60,6 +61,36 @@ fn check_graph(graph: &str) {
 }
 
 #[test]
+fn codec() {
+    check_graph("codec.ron");
+}
+
+#[test]
+fn decompose() {
+    check_graph("decompose.ron");
+}
+
+#[test]
+fn hull() {
+    check_graph("hull.ron");
+}
+
+#[test]
+fn learn() {
+    check_graph("learn.ron");
+}
+
+#[test]
+fn sensor() {
+    check_graph("sensor.ron");
+}
+
+#[test]
+fn texture() {
+    check_graph("texture.ron");
+}
+
+#[test]
 fn animate() {
     check_graph("animate.ron");
 }
@@ -72,13 +103,6 @@ fn bal() {
 #[test]
 fn bundle_adjust() {
     check_graph("bundle_adjust.ron");
-}
-
-#[test]
-fn sensor() {
-    check_graph("sensor.ron");
-fn texture() {
-    check_graph("texture.ron");
 }
 
 #[test]
@@ -99,11 +123,6 @@ fn filters() {
 #[test]
 fn homography() {
     check_graph("homography.ron");
-}
-
-#[test]
-fn learn() {
-    check_graph("learn.ron");
 }
 
 #[test]
@@ -139,13 +158,6 @@ fn ransac_fundamental() {
 #[test]
 fn lines() {
     check_graph("lines.ron");
-}
-
-#[test]
-fn decompose() {
-    check_graph("decompose.ron");
-fn codec() {
-    check_graph("codec.ron");
 }
 
 #[test]
