@@ -436,7 +436,7 @@ mod tests {
             .count();
         // The figure covers roughly 10–25 % of the window.
         assert!((150..600).contains(&changed), "{changed}");
-        // Nothing outside the figure's box changed (top 8 rows are above the head).
-        assert!((0..8 * 32).all(|i| plain.px[i] == background[i]));
+        // Nothing above the head changed (it starts below row 6.6 for any size jitter).
+        assert!((0..6 * 32).all(|i| plain.px[i] == background[i]));
     }
 }
