@@ -284,7 +284,7 @@ mod tests {
             // Mostly-zero blocks like quantized DCTs, and dense ones.
             let mut scanned = [0i32; N];
             for (i, (s, &v)) in scanned.iter_mut().zip(&raw).enumerate() {
-                *s = if sparsity == 0 || (i as u32 * 7 + v.unsigned_abs()) % (sparsity + 1) == 0 { v } else { 0 };
+                *s = if sparsity == 0 || (i as u32 * 7 + v.unsigned_abs()).is_multiple_of(sparsity + 1) { v } else { 0 };
             }
             let pairs = run_levels(&scanned, start);
             let mut expected = scanned;
