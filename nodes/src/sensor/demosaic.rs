@@ -535,13 +535,18 @@ mod tests {
             scores.push(psnr(truth, &out, w, h, 2));
         }
         let [bilinear, malvar, hamilton_adams] = [scores[0], scores[1], scores[2]];
-        eprintln!("PSNR dB: bilinear {bilinear:.2}, malvar {malvar:.2}, hamilton_adams {hamilton_adams:.2}");
+        eprintln!(
+            "PSNR dB: bilinear {bilinear:.2}, malvar {malvar:.2}, hamilton_adams {hamilton_adams:.2}"
+        );
         // The card's 2–8 px gratings alias under any Bayer sampling, hence the low absolute
         // values; the edge-aware methods must still do better.
         assert!(bilinear > 14.0, "bilinear {bilinear}");
-        assert!(malvar > bilinear + 1.0, "malvar {malvar} vs bilinear {bilinear}");
         assert!(
-            hamilton_adams > bilinear + 1.0,
+            malvar > bilinear + 2.0,
+            "malvar {malvar} vs bilinear {bilinear}"
+        );
+        assert!(
+            hamilton_adams > bilinear + 3.5,
             "hamilton_adams {hamilton_adams} vs bilinear {bilinear}"
         );
     }
