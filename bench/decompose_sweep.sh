@@ -4,7 +4,7 @@
 # the accuracy the emitted metrics. Run from the repository root:
 #     bash bench/decompose_sweep.sh > /tmp/decompose_sweep.md
 set -euo pipefail
-export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-/work/main/target}
+
 tmp=$(mktemp -d)
 run() { # OUTPUT NODES... -- SET...
     local output=$1; shift

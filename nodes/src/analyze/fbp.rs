@@ -351,17 +351,13 @@ mod tests {
             bins: covering_bins(n, n),
         };
         let recon = fbp(&radon(&truth, n, n, &g, 0.5), &g, RampWindow::RamLak, n);
-        for i in 0..n * n {
+        for (i, &value) in recon.iter().enumerate() {
             let (x, y) = ((i % n) as f64 - c, (i / n) as f64 - c);
             let r2 = x * x + y * y;
             if r2 <= 64.0 {
-                assert!(
-                    (recon[i] - 1.0).abs() < 0.05,
-                    "inside {x},{y}: {}",
-                    recon[i]
-                );
+                assert!((value - 1.0).abs() < 0.05, "inside {x},{y}: {value}");
             } else if r2 >= 20.0 * 20.0 {
-                assert!(recon[i].abs() < 0.05, "outside {x},{y}: {}", recon[i]);
+                assert!(value.abs() < 0.05, "outside {x},{y}: {value}");
             }
         }
     }

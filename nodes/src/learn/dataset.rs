@@ -277,9 +277,9 @@ mod tests {
     #[test]
     fn linear_data_follows_the_model() {
         let (x, y) = linear_data(1000, &[2.0, -1.0], 0.5, 0.0, 1.0, 1);
-        for i in 0..1000 {
+        for (i, &yi) in y.iter().enumerate() {
             let t = 0.5 + 2.0 * x.data[2 * i] - x.data[2 * i + 1];
-            assert!((y[i] - t).abs() < 1e-12);
+            assert!((yi - t).abs() < 1e-12);
         }
         let var = x.data.iter().map(|v| v * v).sum::<f64>() / 2000.0;
         assert!((var - 1.0).abs() < 0.1, "{var}");

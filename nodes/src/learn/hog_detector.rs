@@ -135,7 +135,10 @@ pub fn train_detector(
     config: &DetectorConfig,
 ) -> Result<LinearDetector, String> {
     let (ww, wh) = (config.window_w, config.window_h);
-    if mosaic.width() < ww || mosaic.width() % ww != 0 || mosaic.height() % wh != 0 {
+    if mosaic.width() < ww
+        || !mosaic.width().is_multiple_of(ww)
+        || !mosaic.height().is_multiple_of(wh)
+    {
         return Err(format!(
             "`training` ({}×{}) is not a mosaic of {ww}×{wh} windows",
             mosaic.width(),

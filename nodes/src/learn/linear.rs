@@ -167,7 +167,10 @@ fn solve_qr(design: &Design, y: &[f64], l2: f64) -> Result<Vec<f64>, String> {
     let qr = a.qr();
     let r = qr.r();
     let largest = (0..p).map(|j| r[(j, j)].abs()).fold(0.0, f64::max);
-    if let Some(j) = (0..p).find(|&j| !(r[(j, j)].abs() > RANK_TOLERANCE * largest)) {
+    if let Some(j) = (0..p).find(|&j| {
+        r[(j, j)].abs().partial_cmp(&(RANK_TOLERANCE * largest))
+            != Some(std::cmp::Ordering::Greater)
+    }) {
         let what = if j == 0 {
             "the bias".to_string()
         } else {

@@ -184,13 +184,13 @@ pub fn demosaic(
 }
 
 /// Which filter interpolates channel `target` at (x, y), or `None` where (x, y) samples it.
-fn case<'f>(
-    filters: &'f Filters,
+fn case(
+    filters: &Filters,
     pattern: BayerPattern,
     x: usize,
     y: usize,
     target: usize,
-) -> Option<&'f [Tap]> {
+) -> Option<&[Tap]> {
     let own = pattern.color_at(x, y);
     if own == target {
         None

@@ -334,7 +334,8 @@ pub fn visual_hull(
             for j in 0..ny {
                 let y = origin[1] + j as f64 * h;
                 for i in 0..nx {
-                    let on_face = i == 0 || j == 0 || k == 0 || i + 1 == nx || j + 1 == ny || k + 1 == nz;
+                    let on_face =
+                        i == 0 || j == 0 || k == 0 || i + 1 == nx || j + 1 == ny || k + 1 == nz;
                     let x = [origin[0] + i as f64 * h, y, z];
                     let mut value = -trunc;
                     if on_face {
@@ -486,7 +487,11 @@ Example:
 
     fn outputs() -> Vec<PortSpec> {
         vec![
-            PortSpec::new("mesh", PortType::Mesh, "The hull's surface, closed, with normals."),
+            PortSpec::new(
+                "mesh",
+                PortType::Mesh,
+                "The hull's surface, closed, with normals.",
+            ),
             PortSpec::new(
                 "points",
                 PortType::PointCloud,
@@ -700,7 +705,11 @@ mod tests {
         };
         let f = unit(sub(target, eye));
         // Camera axes: x right, y down, z forward. Pick an up that is not parallel to f.
-        let up = if f[1].abs() > 0.99 { [0.0, 0.0, 1.0] } else { [0.0, 1.0, 0.0] };
+        let up = if f[1].abs() > 0.99 {
+            [0.0, 0.0, 1.0]
+        } else {
+            [0.0, 1.0, 0.0]
+        };
         let x = unit(cross(f, up));
         let y = cross(f, x);
         let r = nalgebra::Matrix3::new(x[0], x[1], x[2], y[0], y[1], y[2], f[0], f[1], f[2]);
@@ -825,7 +834,11 @@ mod tests {
         assert_eq!(s[3 * w + 2], -0.5); // just outside
         assert_eq!(s[5 * w], -2.5); // 3 px left of the square
         // No boundary at all: ±∞.
-        assert!(signed_distance(&[true; 4], 2, 2).iter().all(|v| *v == f32::INFINITY));
+        assert!(
+            signed_distance(&[true; 4], 2, 2)
+                .iter()
+                .all(|v| *v == f32::INFINITY)
+        );
         assert!(
             signed_distance(&[false; 4], 2, 2)
                 .iter()
@@ -846,14 +859,30 @@ mod tests {
             let h = hull.voxel_size;
             // A pixel at 3 units with f = 110 px is 0.027 units; allow it and a tenth of a voxel.
             let tol = 0.03 + 0.1 * h;
-            let nearest = hull.positions.iter().map(|p| norm(*p)).fold(f64::INFINITY, f64::min);
-            assert!(nearest > 0.5 - tol, "{views} views: a vertex at {nearest} cuts into the sphere");
-            assert!(volume > truth * 0.97, "{views} views: volume {volume} < sphere {truth}");
-            assert!(volume < last, "{views} views: volume {volume} did not shrink from {last}");
+            let nearest = hull
+                .positions
+                .iter()
+                .map(|p| norm(*p))
+                .fold(f64::INFINITY, f64::min);
+            assert!(
+                nearest > 0.5 - tol,
+                "{views} views: a vertex at {nearest} cuts into the sphere"
+            );
+            assert!(
+                volume > truth * 0.97,
+                "{views} views: volume {volume} < sphere {truth}"
+            );
+            assert!(
+                volume < last,
+                "{views} views: volume {volume} did not shrink from {last}"
+            );
             last = volume;
         }
         // With 14 views all around the hull is within a few per cent of the sphere.
-        assert!(last < truth * 1.12, "14 views: volume {last} vs sphere {truth}");
+        assert!(
+            last < truth * 1.12,
+            "14 views: volume {last} vs sphere {truth}"
+        );
     }
 
     /// The surface sits on the hull to a fraction of a voxel even on a coarse grid (the field
@@ -864,15 +893,22 @@ mod tests {
         let run = |res: usize| {
             let hull = sphere_hull(&poses, res);
             let n = hull.positions.len() as f64;
-            let radius_err =
-                hull.positions.iter().map(|p| (norm(*p) - 0.5).abs()).sum::<f64>() / n;
+            let radius_err = hull
+                .positions
+                .iter()
+                .map(|p| (norm(*p) - 0.5).abs())
+                .sum::<f64>()
+                / n;
             (signed_volume(&hull.positions, &hull.triangles), radius_err)
         };
         let (reference, _) = run(96);
         let (v16, e16) = run(16);
         let (v32, e32) = run(32);
         // 16 nodes over 1.6 units: a voxel of 0.107; the vertices are within a tenth of it.
-        assert!(e16 < 0.01 && e32 < 0.01, "mean |r − 0.5|: {e16} at 16, {e32} at 32");
+        assert!(
+            e16 < 0.01 && e32 < 0.01,
+            "mean |r − 0.5|: {e16} at 16, {e32} at 32"
+        );
         assert!(
             (v32 - reference).abs() < (v16 - reference).abs(),
             "volume {v16} at 16, {v32} at 32, {reference} at 96"
@@ -939,7 +975,10 @@ mod tests {
         reversed.reverse();
         let b = sphere_hull(&reversed, 32);
         assert_eq!(a.field, b.field);
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
         let c = pool.install(|| sphere_hull(&poses, 32));
         assert_eq!(a, c);
     }
@@ -966,7 +1005,10 @@ mod tests {
         assert_eq!(visual_hull(&[], &options), Err(VisualHullError::NoViews));
         let mut bad = look_at([0.0, 0.0, 3.0], [0.0; 3]);
         bad.translation[0] = f64::NAN;
-        assert_eq!(visual_hull(&[view(bad)], &options), Err(VisualHullError::Pose(0)));
+        assert_eq!(
+            visual_hull(&[view(bad)], &options),
+            Err(VisualHullError::Pose(0))
+        );
         let short = SilhouetteView {
             inside: &mask[..10],
             ..view(look_at([0.0, 0.0, 3.0], [0.0; 3]))
@@ -985,7 +1027,10 @@ mod tests {
         ));
         // A camera looking away from the box: every node is behind it, so nothing is inside.
         let away = look_at([0.0, 0.0, 3.0], [0.0, 0.0, 6.0]);
-        assert_eq!(visual_hull(&[view(away)], &options), Err(VisualHullError::Empty));
+        assert_eq!(
+            visual_hull(&[view(away)], &options),
+            Err(VisualHullError::Empty)
+        );
         let flat = VisualHullOptions {
             max: [1.0, -1.0, 1.0],
             ..options

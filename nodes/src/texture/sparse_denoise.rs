@@ -796,7 +796,7 @@ mod tests {
                     v = 210.0;
                 }
                 if (36.0..58.0).contains(&x) && (36.0..58.0).contains(&y) {
-                    v = if (x as usize / 4) % 2 == 0 {
+                    v = if (x as usize / 4).is_multiple_of(2) {
                         40.0
                     } else {
                         170.0
