@@ -40,9 +40,10 @@ def run(binary, settings, threads, repeat):
 
 
 def row(label, m):
+    p_kbit = f"{m['p_bits_mean'] / 1000:.1f}" if m["p_frames"] > 0 else "–"
     return (f"| {label} | {m['bpp']:.4f} | {m['bits'] / 1000:.1f} | {m['psnr_mean_db']:.2f} | "
-            f"{m['psnr_min_db']:.2f} | {m['i_bits_mean'] / 1000:.1f} | "
-            f"{m['p_bits_mean'] / 1000:.1f} | {m['enc_ms']:.0f} |")
+            f"{m['psnr_min_db']:.2f} | {m['i_bits_mean'] / 1000:.1f} | {p_kbit} | "
+            f"{m['enc_ms']:.0f} |")
 
 
 HEAD = ("| setting | bpp | kbit | PSNR mean dB | PSNR min dB | I kbit/frame | P kbit/frame | "

@@ -32,7 +32,7 @@ use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::types::PortType;
-use ocellus_engine::value::{Camera, Channels, Image, Mesh, Metrics, PixelData, Pose, Value};
+use ocellus_engine::value::{Image, Mesh, Metrics, PixelData, Pose, Value};
 use ocellus_engine::{param_enum, params};
 use rayon::prelude::*;
 
@@ -41,7 +41,7 @@ use super::normals::{cross, dot, norm, sub};
 use crate::geometry::camera::Lens;
 use crate::geometry::rectify::samples_f32;
 use crate::sfm::depth::{DepthError, DepthKind, DepthOptions, depth_to_points};
-use crate::sfm::pairs::{list_items, required_list};
+use crate::sfm::pairs::{CalibratedViews, list_items};
 
 param_enum! {
     /// Per-pixel weight of a frame's vote in `mesh.tsdf_fusion`.
@@ -1173,50 +1173,12 @@ fn rgb_of(image: &Image) -> Vec<[f32; 3]> {
 
 impl Operator for TsdfFusion {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
-        let depths = required_list(inputs, "depth", PortType::Image, |v| match v {
-            Value::Image(i) => Some(i.clone()),
-            _ => None,
-        })?;
-        let cameras = required_list(inputs, "cameras", PortType::Camera, |v| match v {
-            Value::Camera(c) => Some(c.clone()),
-            _ => None,
-        })?;
-        let poses = required_list(inputs, "poses", PortType::Pose, |v| match v {
-            Value::Pose(p) => Some(*p),
-            _ => None,
-        })?;
+        let views = CalibratedViews::read(inputs, "depth", "depth map")?;
         let colors = list_items(inputs, "color", PortType::Image, |v| match v {
             Value::Image(i) => Some(i.clone()),
             _ => None,
         })?;
-        let n = depths.len();
-        if n == 0 {
-            return Err(OpError::input("depth", "no depth maps"));
-        }
-        if poses.len() != n {
-            return Err(OpError::input(
-                "poses",
-                TsdfError::Count {
-                    depths: n,
-                    other: poses.len(),
-                    what: "poses",
-                }
-                .to_string(),
-            ));
-        }
-        if cameras.len() != n && cameras.len() != 1 {
-            return Err(OpError::input(
-                "cameras",
-                format!(
-                    "{}; give one camera per depth map or one for all",
-                    TsdfError::Count {
-                        depths: n,
-                        other: cameras.len(),
-                        what: "cameras",
-                    }
-                ),
-            ));
-        }
+        let n = views.len();
         if let Some(c) = &colors
             && c.len() != n
         {
@@ -1232,30 +1194,8 @@ impl Operator for TsdfFusion {
         }
         let mut samples = Vec::with_capacity(n);
         let mut rgb = Vec::new();
-        for (i, d) in depths.iter().enumerate() {
-            if d.channels() != Channels::Gray {
-                return Err(OpError::input(
-                    "depth",
-                    format!(
-                        "depth map {i}: expected one channel, got {}",
-                        d.channels().name()
-                    ),
-                ));
-            }
-            let cam: &Camera = cameras.get(i).unwrap_or(&cameras[0]);
-            if (cam.width as usize, cam.height as usize) != (d.width(), d.height()) {
-                return Err(OpError::input(
-                    "cameras",
-                    format!(
-                        "camera of depth map {i} is {}×{} but the depth map is {}×{}",
-                        cam.width,
-                        cam.height,
-                        d.width(),
-                        d.height()
-                    ),
-                ));
-            }
-            if let Err(e) = check_pose(i, &poses[i]) {
+        for (i, d) in views.images.iter().enumerate() {
+            if let Err(e) = check_pose(i, &views.poses[i]) {
                 return Err(OpError::input("poses", e.to_string()));
             }
             if let Some(cs) = &colors {
@@ -1279,10 +1219,10 @@ impl Operator for TsdfFusion {
         let frames: Vec<DepthFrame<'_>> = (0..n)
             .map(|i| DepthFrame {
                 depth: &samples[i],
-                width: depths[i].width(),
-                height: depths[i].height(),
-                lens: Lens::from_camera(cameras.get(i).unwrap_or(&cameras[0])),
-                camera_from_world: poses[i],
+                width: views.images[i].width(),
+                height: views.images[i].height(),
+                lens: Lens::from_camera(views.camera(i)),
+                camera_from_world: views.poses[i],
                 color: rgb.get(i).map(|v| v.as_slice()),
             })
             .collect();
@@ -1327,7 +1267,7 @@ mod tests {
     use super::*;
     use crate::describe::brief::SplitMix64;
     use crate::mesh::marching_cubes::tests::{chamfer, closed_euler};
-    use ocellus_engine::value::{Distortion, Intrinsics};
+    use ocellus_engine::value::{Channels, Distortion, Intrinsics};
     use proptest::prelude::*;
 
     fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {

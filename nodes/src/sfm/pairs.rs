@@ -19,7 +19,9 @@
 
 use std::sync::Arc;
 
-use ocellus_engine::value::{Camera, Descriptors, Keypoint, Match, Matrix, Metrics, Value};
+use ocellus_engine::value::{
+    Camera, Channels, Descriptors, Image, Keypoint, Match, Matrix, Metrics, Pose, Value,
+};
 use ocellus_engine::{
     Inputs, Op, OpError, Operator, Outputs, PortSpec, PortType, RunContext, param_enum, params,
 };
@@ -514,6 +516,102 @@ pub fn required_list<'a, T>(
     pick: impl Fn(&'a Value) -> Option<T>,
 ) -> Result<Vec<T>, OpError> {
     list_items(inputs, name, ty, pick)?.ok_or_else(|| OpError::input(name, "not connected"))
+}
+
+/// Single-channel per-view images (depth maps, silhouettes) with their cameras (one per view,
+/// or one for all) and `camera_from_world` poses, as `capture.render` lists them: read from the
+/// ports `images`, `"cameras"` and `"poses"`, and checked for counts, channels and sizes.
+#[derive(Debug, Clone)]
+pub struct CalibratedViews {
+    /// One single-channel image per view.
+    pub images: Vec<Arc<Image>>,
+    /// One camera per view, or one for all (see [`CalibratedViews::camera`]).
+    pub cameras: Vec<Arc<Camera>>,
+    /// `camera_from_world` of every view.
+    pub poses: Vec<Pose>,
+}
+
+impl CalibratedViews {
+    /// Reads and checks the views; `what` names one image in the messages ("depth map",
+    /// "silhouette"), and errors name the port at fault.
+    pub fn read(inputs: &Inputs<'_>, images: &str, what: &str) -> Result<Self, OpError> {
+        let image_list = required_list(inputs, images, PortType::Image, |v| match v {
+            Value::Image(i) => Some(Arc::clone(i)),
+            _ => None,
+        })?;
+        let cameras = required_list(inputs, "cameras", PortType::Camera, |v| match v {
+            Value::Camera(c) => Some(Arc::clone(c)),
+            _ => None,
+        })?;
+        let poses = required_list(inputs, "poses", PortType::Pose, |v| match v {
+            Value::Pose(p) => Some(*p),
+            _ => None,
+        })?;
+        let n = image_list.len();
+        if n == 0 {
+            return Err(OpError::input(images, format!("no {what}s")));
+        }
+        if poses.len() != n {
+            return Err(OpError::input(
+                "poses",
+                format!("{n} {what}s but {} poses", poses.len()),
+            ));
+        }
+        if cameras.len() != n && cameras.len() != 1 {
+            return Err(OpError::input(
+                "cameras",
+                format!(
+                    "{n} {what}s but {} cameras; give one camera per {what} or one for all",
+                    cameras.len()
+                ),
+            ));
+        }
+        let views = CalibratedViews {
+            images: image_list,
+            cameras,
+            poses,
+        };
+        for (i, image) in views.images.iter().enumerate() {
+            if image.channels() != Channels::Gray {
+                return Err(OpError::input(
+                    images,
+                    format!(
+                        "{what} {i}: expected one channel, got {}",
+                        image.channels().name()
+                    ),
+                ));
+            }
+            let cam = views.camera(i);
+            if (cam.width as usize, cam.height as usize) != (image.width(), image.height()) {
+                return Err(OpError::input(
+                    "cameras",
+                    format!(
+                        "camera of {what} {i} is {}×{} but the {what} is {}×{}",
+                        cam.width,
+                        cam.height,
+                        image.width(),
+                        image.height()
+                    ),
+                ));
+            }
+        }
+        Ok(views)
+    }
+
+    /// Number of views.
+    pub fn len(&self) -> usize {
+        self.images.len()
+    }
+
+    /// Whether there is no view (never, once read).
+    pub fn is_empty(&self) -> bool {
+        self.images.is_empty()
+    }
+
+    /// The camera of view `i`: its own, or the one shared by all.
+    pub fn camera(&self, i: usize) -> &Camera {
+        self.cameras.get(i).unwrap_or(&self.cameras[0])
+    }
 }
 
 /// The keypoint sets of a `List<Keypoints>` input.

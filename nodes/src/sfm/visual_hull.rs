@@ -32,7 +32,7 @@ use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::types::PortType;
-use ocellus_engine::value::{Camera, Channels, Image, Mesh, Metrics, PixelData, Pose, Value};
+use ocellus_engine::value::{Image, Mesh, Metrics, PixelData, Pose, Value};
 use ocellus_engine::{param_enum, params};
 use rayon::prelude::*;
 
@@ -41,7 +41,7 @@ use crate::geometry::camera::Lens;
 use crate::mesh::marching_cubes::{MarchingCubesError, ScalarGrid, marching_cubes};
 use crate::mesh::metrics::{signed_volume, surface_area};
 use crate::mesh::normals::{NormalWeighting, vertex_normals};
-use crate::sfm::pairs::required_list;
+use crate::sfm::pairs::CalibratedViews;
 
 param_enum! {
     /// What a node projecting outside an image (or behind the camera) means.
@@ -561,74 +561,19 @@ fn silhouette_mask(image: &Image, from: SilhouetteFrom, threshold: f64) -> Vec<b
 
 impl Operator for VisualHullOp {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
-        let images = required_list(inputs, "silhouettes", PortType::Image, |v| match v {
-            Value::Image(i) => Some(i.clone()),
-            _ => None,
-        })?;
-        let cameras = required_list(inputs, "cameras", PortType::Camera, |v| match v {
-            Value::Camera(c) => Some(c.clone()),
-            _ => None,
-        })?;
-        let poses = required_list(inputs, "poses", PortType::Pose, |v| match v {
-            Value::Pose(p) => Some(*p),
-            _ => None,
-        })?;
-        let n = images.len();
-        if n == 0 {
-            return Err(OpError::input("silhouettes", "no silhouettes"));
-        }
-        if poses.len() != n {
-            return Err(OpError::input(
-                "poses",
-                format!("{n} silhouettes but {} poses", poses.len()),
-            ));
-        }
-        if cameras.len() != n && cameras.len() != 1 {
-            return Err(OpError::input(
-                "cameras",
-                format!(
-                    "{n} silhouettes but {} cameras; give one camera per view or one for all",
-                    cameras.len()
-                ),
-            ));
-        }
-        let mut masks = Vec::with_capacity(n);
-        for (i, image) in images.iter().enumerate() {
-            if image.channels() != Channels::Gray {
-                return Err(OpError::input(
-                    "silhouettes",
-                    format!(
-                        "silhouette {i}: expected one channel, got {}",
-                        image.channels().name()
-                    ),
-                ));
-            }
-            let cam: &Camera = cameras.get(i).unwrap_or(&cameras[0]);
-            if (cam.width as usize, cam.height as usize) != (image.width(), image.height()) {
-                return Err(OpError::input(
-                    "cameras",
-                    format!(
-                        "camera of view {i} is {}×{} but its silhouette is {}×{}",
-                        cam.width,
-                        cam.height,
-                        image.width(),
-                        image.height()
-                    ),
-                ));
-            }
-            masks.push(silhouette_mask(
-                image,
-                self.params.silhouette_from,
-                self.params.threshold,
-            ));
-        }
-        let views: Vec<SilhouetteView<'_>> = (0..n)
+        let views = CalibratedViews::read(inputs, "silhouettes", "silhouette")?;
+        let masks: Vec<Vec<bool>> = views
+            .images
+            .iter()
+            .map(|image| silhouette_mask(image, self.params.silhouette_from, self.params.threshold))
+            .collect();
+        let silhouettes: Vec<SilhouetteView<'_>> = (0..views.len())
             .map(|i| SilhouetteView {
                 inside: &masks[i],
-                width: images[i].width(),
-                height: images[i].height(),
-                lens: Lens::from_camera(cameras.get(i).unwrap_or(&cameras[0])),
-                camera_from_world: poses[i],
+                width: views.images[i].width(),
+                height: views.images[i].height(),
+                lens: Lens::from_camera(views.camera(i)),
+                camera_from_world: views.poses[i],
             })
             .collect();
         let options = VisualHullOptions {
@@ -639,7 +584,7 @@ impl Operator for VisualHullOp {
             outside: self.params.outside,
             max_voxels: self.params.max_voxels,
         };
-        let hull = visual_hull(&views, &options).map_err(|e| match e {
+        let hull = visual_hull(&silhouettes, &options).map_err(|e| match e {
             VisualHullError::Pose(_) => OpError::input("poses", e.to_string()),
             VisualHullError::Extraction(_) => OpError::failed(e.to_string()),
             VisualHullError::Bounds { .. } | VisualHullError::TooManyVoxels { .. } => {
@@ -666,7 +611,7 @@ impl Operator for VisualHullOp {
             normals: None,
         };
         let mut m = Metrics::new();
-        m.insert("views".into(), n as f64);
+        m.insert("views".into(), views.len() as f64);
         m.insert("nx".into(), hull.dims[0] as f64);
         m.insert("ny".into(), hull.dims[1] as f64);
         m.insert("nz".into(), hull.dims[2] as f64);
@@ -785,16 +730,17 @@ mod tests {
         poses
     }
 
-    fn sphere_hull(poses: &[Pose], resolution: usize) -> VisualHull {
-        let (w, h) = (96, 96);
-        let lens = lens(w, h, 110.0);
-        let masks: Vec<Vec<bool>> = poses
+    /// One view per pose, of the same `w × h` lens, each with its mask.
+    fn views_of<'a>(
+        poses: &[Pose],
+        masks: &'a [Vec<bool>],
+        w: usize,
+        h: usize,
+        lens: Lens,
+    ) -> Vec<SilhouetteView<'a>> {
+        poses
             .iter()
-            .map(|p| sphere_silhouette(&lens, p, w, h, [0.0; 3], 0.5))
-            .collect();
-        let views: Vec<SilhouetteView<'_>> = poses
-            .iter()
-            .zip(&masks)
+            .zip(masks)
             .map(|(p, m)| SilhouetteView {
                 inside: m,
                 width: w,
@@ -802,7 +748,17 @@ mod tests {
                 lens,
                 camera_from_world: *p,
             })
+            .collect()
+    }
+
+    fn sphere_hull(poses: &[Pose], resolution: usize) -> VisualHull {
+        let (w, h) = (96, 96);
+        let lens = lens(w, h, 110.0);
+        let masks: Vec<Vec<bool>> = poses
+            .iter()
+            .map(|p| sphere_silhouette(&lens, p, w, h, [0.0; 3], 0.5))
             .collect();
+        let views = views_of(poses, &masks, w, h, lens);
         visual_hull(
             &views,
             &VisualHullOptions {
@@ -927,17 +883,7 @@ mod tests {
             .iter()
             .map(|p| sphere_silhouette(&lens, p, w, h, [0.0; 3], 0.9))
             .collect();
-        let views: Vec<SilhouetteView<'_>> = poses
-            .iter()
-            .zip(&masks)
-            .map(|(p, m)| SilhouetteView {
-                inside: m,
-                width: w,
-                height: h,
-                lens,
-                camera_from_world: *p,
-            })
-            .collect();
+        let views = views_of(&poses, &masks, w, h, lens);
         let hull = visual_hull(
             &views,
             &VisualHullOptions {

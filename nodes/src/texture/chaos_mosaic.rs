@@ -8,12 +8,11 @@
 //! parallel step is the final metric, which is reduced in a fixed order.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::types::PortType;
-use ocellus_engine::value::{Metrics, Value};
+use ocellus_engine::value::Metrics;
 use ocellus_engine::{param_enum, params};
 
 use super::quilting::{min_cut_path, pixel_ssd};
-use super::{Texture, check_output_side, synthesis_match_rms};
+use super::{Texture, check_output_side, source_port, synthesis_outputs, synthesis_ports};
 use crate::video::filters::SplitMix64;
 
 param_enum! {
@@ -108,26 +107,11 @@ Example:
 "#;
 
     fn inputs() -> Vec<PortSpec> {
-        vec![PortSpec::new(
-            "source",
-            PortType::Image,
-            "Source texture, any pixel format, at least block_px on each side.",
-        )]
+        source_port("block_px")
     }
 
     fn outputs() -> Vec<PortSpec> {
-        vec![
-            PortSpec::new(
-                "image",
-                PortType::Image,
-                "Synthesized texture, width × height, the source's format.",
-            ),
-            PortSpec::new(
-                "metrics",
-                PortType::Metrics,
-                "blocks, distinct_positions, period_rms, patch_match_rms.",
-            ),
-        ]
+        synthesis_ports("blocks, distinct_positions, period_rms")
     }
 
     fn new(params: ChaosMosaicParams) -> Result<Self, String> {
@@ -184,12 +168,7 @@ impl Operator for ChaosMosaic {
             "period_rms".into(),
             period_rms(&result.texture, source.width, source.height),
         );
-        if let Some(rms) = synthesis_match_rms(&result.texture, &source) {
-            metrics.insert("patch_match_rms".into(), rms);
-        }
-        Ok(Outputs::new()
-            .with("image", Value::image(result.texture.to_image(image)?))
-            .with("metrics", Value::metrics(metrics)))
+        synthesis_outputs(&result.texture, &source, image, metrics)
     }
 }
 

@@ -11,12 +11,11 @@
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::params;
-use ocellus_engine::types::PortType;
-use ocellus_engine::value::{Metrics, Value};
+use ocellus_engine::value::Metrics;
 use rayon::prelude::*;
 
 use super::quilting::choose_within;
-use super::{Texture, check_output_side, synthesis_match_rms};
+use super::{Texture, check_output_side, source_port, synthesis_outputs, synthesis_ports};
 use crate::video::filters::SplitMix64;
 
 /// Efros & Leung's Gaussian: σ = window / 6.4.
@@ -103,26 +102,11 @@ Example:
 "#;
 
     fn inputs() -> Vec<PortSpec> {
-        vec![PortSpec::new(
-            "source",
-            PortType::Image,
-            "Source texture, any pixel format, at least window_px on each side.",
-        )]
+        source_port("window_px")
     }
 
     fn outputs() -> Vec<PortSpec> {
-        vec![
-            PortSpec::new(
-                "image",
-                PortType::Image,
-                "Synthesized texture, width × height, the source's format.",
-            ),
-            PortSpec::new(
-                "metrics",
-                PortType::Metrics,
-                "pixels_synthesized, match_rms, candidates_mean, patch_match_rms.",
-            ),
-        ]
+        synthesis_ports("pixels_synthesized, match_rms, candidates_mean")
     }
 
     fn new(params: EfrosLeungParams) -> Result<Self, String> {
@@ -174,12 +158,7 @@ impl Operator for EfrosLeung {
         );
         metrics.insert("match_rms".into(), result.match_rms);
         metrics.insert("candidates_mean".into(), result.candidates_mean);
-        if let Some(rms) = synthesis_match_rms(&result.texture, &source) {
-            metrics.insert("patch_match_rms".into(), rms);
-        }
-        Ok(Outputs::new()
-            .with("image", Value::image(result.texture.to_image(image)?))
-            .with("metrics", Value::metrics(metrics)))
+        synthesis_outputs(&result.texture, &source, image, metrics)
     }
 }
 

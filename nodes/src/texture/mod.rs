@@ -9,8 +9,9 @@
 //! The synthesis operators share [`Texture`] (interleaved f32 samples) and report
 //! [`patch_match_rms`], the distance of the output's patches to their nearest source patches.
 
-use ocellus_engine::op::OpError;
-use ocellus_engine::value::{Channels, Image, PixelData};
+use ocellus_engine::op::{OpError, Outputs, PortSpec};
+use ocellus_engine::types::PortType;
+use ocellus_engine::value::{Channels, Image, Metrics, PixelData, Value};
 use rayon::prelude::*;
 
 pub mod chaos_mosaic;
@@ -202,6 +203,47 @@ pub fn synthesis_match_rms(output: &Texture, source: &Texture) -> Option<f64> {
         stride += 1;
     }
     patch_match_rms(output, source, p, stride)
+}
+
+/// The input port of the synthesizers: the source texture, at least `at_least` on each side.
+pub(crate) fn source_port(at_least: &str) -> Vec<PortSpec> {
+    vec![PortSpec::new(
+        "source",
+        PortType::Image,
+        &format!("Source texture, any pixel format, at least {at_least} on each side."),
+    )]
+}
+
+/// The output ports of the synthesizers: the texture and its `metrics` (named in `metrics`).
+pub(crate) fn synthesis_ports(metrics: &str) -> Vec<PortSpec> {
+    vec![
+        PortSpec::new(
+            "image",
+            PortType::Image,
+            "Synthesized texture, width × height, the source's format.",
+        ),
+        PortSpec::new(
+            "metrics",
+            PortType::Metrics,
+            &format!("{metrics}, patch_match_rms."),
+        ),
+    ]
+}
+
+/// A synthesizer's outputs: `output` as an image of `source_image`'s format, and `metrics`
+/// completed with `patch_match_rms` (the distance of the output's patches to `source`'s).
+pub(crate) fn synthesis_outputs(
+    output: &Texture,
+    source: &Texture,
+    source_image: &Image,
+    mut metrics: Metrics,
+) -> Result<Outputs, OpError> {
+    if let Some(rms) = synthesis_match_rms(output, source) {
+        metrics.insert("patch_match_rms".into(), rms);
+    }
+    Ok(Outputs::new()
+        .with("image", Value::image(output.to_image(source_image)?))
+        .with("metrics", Value::metrics(metrics)))
 }
 
 /// Mean and population variance of every channel, f64, summed in order.

@@ -10,11 +10,10 @@
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::params;
-use ocellus_engine::types::PortType;
-use ocellus_engine::value::{Metrics, Value};
+use ocellus_engine::value::Metrics;
 use rayon::prelude::*;
 
-use super::{Texture, check_output_side, synthesis_match_rms};
+use super::{Texture, check_output_side, source_port, synthesis_outputs, synthesis_ports};
 use crate::video::filters::SplitMix64;
 
 params! {
@@ -102,26 +101,11 @@ Example:
 "#;
 
     fn inputs() -> Vec<PortSpec> {
-        vec![PortSpec::new(
-            "source",
-            PortType::Image,
-            "Source texture, any pixel format, at least block_px on each side.",
-        )]
+        source_port("block_px")
     }
 
     fn outputs() -> Vec<PortSpec> {
-        vec![
-            PortSpec::new(
-                "image",
-                PortType::Image,
-                "Synthesized texture, width × height, the source's format.",
-            ),
-            PortSpec::new(
-                "metrics",
-                PortType::Metrics,
-                "blocks, overlap_rms, seam_rms, patch_match_rms.",
-            ),
-        ]
+        synthesis_ports("blocks, overlap_rms, seam_rms")
     }
 
     fn new(params: QuiltingParams) -> Result<Self, String> {
@@ -172,12 +156,7 @@ impl Operator for Quilting {
         metrics.insert("blocks".into(), result.blocks as f64);
         metrics.insert("overlap_rms".into(), result.overlap_rms);
         metrics.insert("seam_rms".into(), result.seam_rms);
-        if let Some(rms) = synthesis_match_rms(&result.texture, &source) {
-            metrics.insert("patch_match_rms".into(), rms);
-        }
-        Ok(Outputs::new()
-            .with("image", Value::image(result.texture.to_image(image)?))
-            .with("metrics", Value::metrics(metrics)))
+        synthesis_outputs(&result.texture, &source, image, metrics)
     }
 }
 
