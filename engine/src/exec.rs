@@ -56,6 +56,10 @@ pub struct RunOptions {
     /// In-memory results shared between runs (the frames of an animation); checked before
     /// the disk cache.
     pub memory_cache: Option<Arc<MemoryCache>>,
+    /// Nodes computed even when a cache holds their result, and with them everything
+    /// downstream (their new results are stored as usual): what a parameter sweep times while
+    /// the unchanged upstream comes from the cache. Unknown names are an error.
+    pub recompute: Vec<String>,
 }
 
 /// The caches a run reads and fills.
@@ -87,6 +91,14 @@ pub enum RunError {
         /// The name asked for.
         name: String,
         /// The nearest output name.
+        suggestion: Option<String>,
+    },
+    /// `recompute` names no node of the graph.
+    #[error("the graph has no node `{name}`{}", .suggestion.as_ref().map(|s| format!(" (did you mean `{s}`?)")).unwrap_or_default())]
+    UnknownNode {
+        /// The name asked for.
+        name: String,
+        /// The nearest node name.
         suggestion: Option<String>,
     },
     /// The thread pool could not be created.
@@ -135,6 +147,8 @@ pub struct NodeReport {
     pub status: NodeStatus,
     /// Time spent in the operator (zero unless computed).
     pub elapsed: Duration,
+    /// Bytes of the node's outputs (computed or loaded from a cache; zero otherwise).
+    pub output_bytes: usize,
 }
 
 /// A node that failed, with where it was declared.
@@ -241,7 +255,7 @@ pub fn run(graph: &Graph, options: &RunOptions) -> Result<RunReport, RunError> {
         disk: cache.as_ref(),
         memory: options.memory_cache.as_deref(),
     };
-    let plan = plan(graph, &options.outputs, caches)?;
+    let plan = plan(graph, &options.outputs, &options.recompute, caches)?;
     let mut report =
         pool.install(|| execute(graph, &plan, caches, threads, options.progress.as_ref()));
     report.elapsed = start.elapsed();
@@ -266,8 +280,38 @@ pub(crate) fn thread_pool(threads: usize) -> Result<(rayon::ThreadPool, usize), 
     Ok((pool, threads))
 }
 
-fn plan(graph: &Graph, selected: &[String], caches: Caches<'_>) -> Result<Plan, RunError> {
+fn plan(
+    graph: &Graph,
+    selected: &[String],
+    recompute: &[String],
+    caches: Caches<'_>,
+) -> Result<Plan, RunError> {
     let n = graph.nodes.len();
+    // Nodes that must not come from a cache: those named, and (nodes are in topological
+    // order) everything fed by one of them.
+    let mut fresh = vec![false; n];
+    for name in recompute {
+        let Some(i) = graph.nodes.iter().position(|node| &node.name == name) else {
+            return Err(RunError::UnknownNode {
+                name: name.clone(),
+                suggestion: suggest(name, graph.nodes.iter().map(|node| node.name.as_str()))
+                    .map(str::to_string),
+            });
+        };
+        fresh[i] = true;
+    }
+    for i in 0..n {
+        if !fresh[i]
+            && graph.nodes[i]
+                .inputs
+                .iter()
+                .flatten()
+                .flat_map(InputEdge::sources)
+                .any(|from| fresh[from.node])
+        {
+            fresh[i] = true;
+        }
+    }
     // Requested outputs and roots.
     let mut requested = Vec::new();
     let mut roots = Vec::new();
@@ -364,7 +408,7 @@ fn plan(graph: &Graph, selected: &[String], caches: Caches<'_>) -> Result<Plan, 
             continue;
         }
         let node = &graph.nodes[c];
-        if let (Some(key), false) = (keys[c], node.info.side_effects)
+        if let (Some(key), false, false) = (keys[c], node.info.side_effects, fresh[c])
             && let Some(values) = caches.load(&key, node)
         {
             loaded.insert(c, values);
@@ -475,6 +519,7 @@ struct State<'a> {
     sources: Vec<Vec<usize>>,
     status: Vec<Mutex<NodeStatus>>,
     elapsed: Vec<Mutex<Duration>>,
+    output_bytes: Vec<AtomicUsize>,
     failures: Mutex<Vec<(usize, String)>>,
     warnings: Mutex<Vec<String>>,
     live_bytes: AtomicUsize,
@@ -545,6 +590,9 @@ fn execute(
             })
             .collect(),
         elapsed: (0..n).map(|_| Mutex::new(Duration::ZERO)).collect(),
+        output_bytes: (0..n)
+            .map(|i| AtomicUsize::new(plan.loaded.get(&i).map_or(0, |v| bytes_of(v))))
+            .collect(),
         failures: Mutex::new(Vec::new()),
         warnings: Mutex::new(Vec::new()),
         live_bytes: AtomicUsize::new(plan.loaded.values().map(|v| bytes_of(v)).sum()),
@@ -573,6 +621,7 @@ fn execute(
         results,
         status,
         elapsed,
+        output_bytes,
         failures,
         warnings,
         peak_bytes,
@@ -618,11 +667,13 @@ fn execute(
             .iter()
             .zip(status)
             .zip(elapsed)
-            .map(|((node, status), elapsed)| NodeReport {
+            .zip(output_bytes)
+            .map(|(((node, status), elapsed), bytes)| NodeReport {
                 name: node.name.clone(),
                 op: node.info.id.clone(),
                 status,
                 elapsed: elapsed.into_inner().unwrap_or_default(),
+                output_bytes: bytes.into_inner(),
             })
             .collect(),
         warnings: warnings.into_inner().unwrap_or_default(),
@@ -712,6 +763,7 @@ fn run_task<'s>(scope: &rayon::Scope<'s>, state: &'s State<'s>, i: usize) {
                     ));
                 }
                 let bytes = bytes_of(&values);
+                state.output_bytes[i].store(bytes, Ordering::Relaxed);
                 let live = state.live_bytes.fetch_add(bytes, Ordering::Relaxed) + bytes;
                 state.peak_bytes.fetch_max(live, Ordering::Relaxed);
                 if let Ok(mut slot) = state.results[i].lock() {

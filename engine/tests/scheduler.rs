@@ -245,6 +245,44 @@ fn disk_cache_recomputes_only_downstream_of_a_change() {
     assert_eq!(fourth.count(NodeStatus::Computed), 5);
 }
 
+/// `recompute` runs the named node and everything downstream of it although the memory cache
+/// holds them, while the rest still comes from the cache; unknown names are an error.
+#[test]
+fn recompute_bypasses_the_cache_downstream_of_the_named_nodes() {
+    let (reg, calls) = registry();
+    let graph = load(&reg, BRANCHES);
+    let memory = std::sync::Arc::new(ocellus_engine::cache::MemoryCache::new());
+    let options = RunOptions {
+        memory_cache: Some(std::sync::Arc::clone(&memory)),
+        ..RunOptions::default()
+    };
+    let first = run(&graph, &options).unwrap();
+    assert_eq!(calls.total(), 5);
+    assert_eq!(first.count(NodeStatus::Computed), 5);
+
+    let again = RunOptions {
+        recompute: vec!["b".into()],
+        ..options.clone()
+    };
+    let second = run(&graph, &again).unwrap();
+    assert_eq!(second.outputs, first.outputs);
+    // `b` and `ab` run again; `c2` is loaded (its upstream `c` is not needed).
+    assert_eq!(calls.get("t.source"), 3 + 1);
+    assert_eq!(calls.get("t.add"), 2 + 1);
+    assert_eq!(second.count(NodeStatus::Computed), 2);
+    let status = |name: &str| second.nodes.iter().find(|n| n.name == name).unwrap().status;
+    assert_eq!(status("a"), NodeStatus::Cached);
+    assert_eq!(status("c2"), NodeStatus::Cached);
+    assert_eq!(status("c"), NodeStatus::Idle);
+
+    let unknown = RunOptions {
+        recompute: vec!["bb".into()],
+        ..options
+    };
+    let e = run(&graph, &unknown).err().unwrap().to_string();
+    assert!(e.contains("no node `bb`") && e.contains("did you mean `b`"), "{e}");
+}
+
 #[test]
 fn subgraphs_are_inlined_with_inputs_and_outputs() {
     let (reg, _) = registry();
