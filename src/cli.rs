@@ -58,6 +58,9 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Run a graph over a grid of parameter values: time vs each metric, the Pareto front, a
+    /// CSV, a Markdown table and plots.
+    Sweep(crate::sweep::SweepArgs),
     /// Print a graph as Graphviz DOT.
     Dot {
         /// Graph file.
@@ -108,6 +111,10 @@ pub struct RunArgs {
     /// Persist node results here and reuse them across runs.
     #[arg(long, value_name = "DIR")]
     pub cache: Option<PathBuf>,
+    /// Write a self-contained HTML report of the run (graph, per-node time and memory, cache
+    /// reuse, output previews).
+    #[arg(long, value_name = "FILE.html")]
+    pub report: Option<PathBuf>,
 }
 
 impl RunArgs {
@@ -144,6 +151,7 @@ pub fn dispatch(cli: Cli) -> ExitCode {
         Command::Run(args) => run(registry, &args, plugins),
         Command::Check { graph, set } => check(registry, &graph, &set, plugins),
         Command::Ops { op, json } => crate::ops::ops(registry, op.as_deref(), json),
+        Command::Sweep(args) => crate::sweep::sweep(registry, &args, plugins),
         Command::Dot { graph } => match load(registry, &graph, &[], plugins) {
             Ok(g) => {
                 print!("{}", g.to_dot());
@@ -157,7 +165,7 @@ pub fn dispatch(cli: Cli) -> ExitCode {
 
 /// Whether plugins may be loaded (`--no-plugins` turns them off).
 #[derive(Debug, Clone, Copy)]
-struct Plugins {
+pub(crate) struct Plugins {
     enabled: bool,
 }
 
@@ -201,7 +209,7 @@ fn builtin_registry() -> Result<Registry, ExitCode> {
 }
 
 /// Parses overrides and loads a graph, printing diagnostics on failure.
-fn load(
+pub(crate) fn load(
     registry: &mut Registry,
     path: &Path,
     set: &[String],
@@ -365,6 +373,9 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
         Ok(g) => g,
         Err(code) => return code,
     };
+    if let Err(code) = crate::run_report::refuse_unsupported(registry, args) {
+        return code;
+    }
     let threads = if args.threads == 0 {
         std::thread::available_parallelism().map_or(1, |n| n.get())
     } else {
@@ -496,6 +507,13 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
         last.summary_line(),
         render_bytes(last.peak_bytes as u64),
     );
+    if let Some(path) = &args.report
+        && let Err(message) =
+            crate::run_report::write_report(path, args, &graph, &reports, threads)
+    {
+        eprintln!("error: {message}");
+        code = ExitCode::from(EXIT_FAILED);
+    }
     code
 }
 

@@ -3,9 +3,12 @@
 mod animation;
 mod cli;
 mod ops;
+mod plot;
 mod profile;
 mod report;
+mod run_report;
 mod streaming;
+mod sweep;
 
 use std::process::ExitCode;
 

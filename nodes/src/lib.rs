@@ -159,6 +159,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<matching::patch::PatchMatch>()?;
     registry.register::<matching::draw::DrawMatches>()?;
     registry.register::<analyze::match_accuracy::MatchAccuracy>()?;
+    registry.register::<analyze::homography_error::HomographyError>()?;
     registry.register::<analyze::reconstruction_error::ReconstructionError>()?;
     registry.register::<analyze::reconstruction_points::ReconstructionPoints>()?;
     registry.register::<geometry::calibrate::Calibrate>()?;

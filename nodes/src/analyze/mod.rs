@@ -8,6 +8,7 @@ pub mod evaluate;
 pub mod face_set;
 pub mod fbp;
 pub mod histogram;
+pub mod homography_error;
 pub mod match_accuracy;
 pub mod pca;
 pub mod phantom;
