@@ -471,10 +471,14 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
     let profile = Profile::from_reports(&reports);
     let mut code = report_failures(last);
 
+    let mut emitted = None;
     if let Some(dir) = &args.emit {
-        if let Err(message) = emit_all(dir, last) {
-            eprintln!("error: {message}");
-            code = ExitCode::from(EXIT_FAILED);
+        match emit_all(dir, last) {
+            Ok(()) => emitted = Some(dir),
+            Err(message) => {
+                eprintln!("error: {message}");
+                code = ExitCode::from(EXIT_FAILED);
+            }
         }
     } else {
         print!(
@@ -507,9 +511,15 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
         last.summary_line(),
         render_bytes(last.peak_bytes as u64),
     );
+    if let Some(dir) = emitted {
+        eprintln!(
+            "outputs: {} ({} written)",
+            dir.display(),
+            last.outputs.len()
+        );
+    }
     if let Some(path) = &args.report
-        && let Err(message) =
-            crate::run_report::write_report(path, args, &graph, &reports, threads)
+        && let Err(message) = crate::run_report::write_report(path, args, &graph, &reports, threads)
     {
         eprintln!("error: {message}");
         code = ExitCode::from(EXIT_FAILED);

@@ -23,6 +23,7 @@ const SNAPSHOTTED: &[&str] = &[
     "learn.ron",
     "lines.ron",
     "mesh.ron",
+    "panorama.ron",
     "poisson.ron",
     "ransac_fundamental.ron",
     "ransac_homography.ron",
@@ -163,6 +164,11 @@ fn lines() {
 #[test]
 fn segment() {
     check_graph("segment.ron");
+}
+
+#[test]
+fn panorama() {
+    check_graph("panorama.ron");
 }
 
 #[test]

@@ -148,6 +148,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<geometry::two_view::FindFundamental>()?;
     registry.register::<geometry::two_view::MatchedPoints>()?;
     registry.register::<geometry::two_view::SelectModel>()?;
+    registry.register::<geometry::stitch::StitchPanorama>()?;
     registry.register::<geometry::relative_pose::FindEssential>()?;
     registry.register::<geometry::relative_pose::RelativePoseOp>()?;
     registry.register::<segment::components::Components>()?;

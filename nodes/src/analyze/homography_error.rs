@@ -48,10 +48,10 @@ of each point land (px):
 - `grid_rms_px`: the RMS over a 16 × 16 grid of points spanning the image (pixel centres from
   0.5 to w − 0.5), which weighs the whole view rather than its corners.
 
-Both are invariant to the scale of H (it is normalised by its own h₃₃ only through the
-dehomogenisation). A point that the estimate sends to infinity or behind the view (its
-homogeneous w changes sign against the truth's) counts as 10⁶ px, the cap of every metric, so a
-degenerate estimate scores as very bad rather than failing the run.
+Both are invariant to the scale (and sign) of H. A point that the estimate sends to infinity
+or beyond it (its homogeneous w, with H oriented so that the view's centre has w > 0, changes
+sign against the truth's) counts as 10⁶ px, the cap of every metric, so a degenerate estimate
+scores as very bad rather than failing the run.
 
 Example:
     "error": (op: "analyze.homography_error", inputs: { "H": "ransac.H", "image": "left.image" },
@@ -202,6 +202,13 @@ pub fn transfer_distance(h: &[f64; 9], truth: &[f64; 9], x: f64, y: f64) -> f64 
 /// Corner and grid transfer errors of the estimate `h` against `truth` over a `width` ×
 /// `height` first view (see `analyze.homography_error`).
 pub fn homography_error(h: &[f64; 9], truth: &[f64; 9], width: f64, height: f64) -> TransferErrors {
+    // H and −H are one homography: orient both so that the view's centre has w > 0; points
+    // with w ≤ 0 then lie beyond the line at infinity.
+    let oriented = |m: &[f64; 9]| {
+        let w = m[6] * width / 2.0 + m[7] * height / 2.0 + m[8];
+        if w < 0.0 { m.map(|v| -v) } else { *m }
+    };
+    let (h, truth) = (&oriented(h), &oriented(truth));
     let corners = [(0.0, 0.0), (width, 0.0), (width, height), (0.0, height)]
         .map(|(x, y)| transfer_distance(h, truth, x, y));
     let corner_mean_px = corners.iter().sum::<f64>() / 4.0;

@@ -22,6 +22,7 @@ pub mod relative_pose;
 pub mod robust;
 pub mod servo;
 pub mod shapes;
+pub mod stitch;
 pub mod synthetic;
 pub mod transforms;
 pub mod triangulate;
