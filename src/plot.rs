@@ -392,7 +392,10 @@ pub fn format_number(v: f64) -> String {
     }
 }
 
-fn draw<DB: DrawingBackend>(area: DrawingArea<DB, plotters::coord::Shift>, chart: &ParetoChart) -> Result<(), String>
+fn draw<DB: DrawingBackend>(
+    area: DrawingArea<DB, plotters::coord::Shift>,
+    chart: &ParetoChart,
+) -> Result<(), String>
 where
     DB::ErrorType: 'static,
 {
@@ -469,9 +472,7 @@ where
     let mut taken: Vec<(i32, i32, i32, i32)> = Vec::new();
     for (i, p) in &front {
         let text = chart.labels.get(*i).cloned().unwrap_or_default();
-        let (tw, th) = area
-            .estimate_text_size(&text, &label_style)
-            .map_err(err)?;
+        let (tw, th) = area.estimate_text_size(&text, &label_style).map_err(err)?;
         let (px, py) = ctx.backend_coord(&at(*p));
         let rect = (px + 8, py - 4 - th as i32, px + 8 + tw as i32, py - 4);
         let overlaps = taken
@@ -607,9 +608,21 @@ mod tests {
             title: "error vs time".into(),
             x_label: "time ms".into(),
             y_label: "error px".into(),
-            points: vec![(1.0, 10.0), (2.0, 5.0), (3.0, 6.0), (4.0, 1.0), (f64::NAN, 1.0)],
+            points: vec![
+                (1.0, 10.0),
+                (2.0, 5.0),
+                (3.0, 6.0),
+                (4.0, 1.0),
+                (f64::NAN, 1.0),
+            ],
             front: vec![0, 1, 3],
-            labels: vec!["a=1".into(), "a=2".into(), "a=3".into(), "a=4".into(), "x".into()],
+            labels: vec![
+                "a=1".into(),
+                "a=2".into(),
+                "a=3".into(),
+                "a=4".into(),
+                "x".into(),
+            ],
         }
     }
 
@@ -617,7 +630,14 @@ mod tests {
     fn the_svg_holds_the_labels_and_the_front() {
         let svg = pareto_svg(&chart()).unwrap();
         assert!(svg.starts_with("<svg"), "{}", &svg[..40]);
-        for text in ["error vs time", "time ms", "error px", "a=1", "a=4", "Pareto front"] {
+        for text in [
+            "error vs time",
+            "time ms",
+            "error px",
+            "a=1",
+            "a=4",
+            "Pareto front",
+        ] {
             assert!(svg.contains(text), "{text}");
         }
         // Only the front's points are labelled.
@@ -633,8 +653,14 @@ mod tests {
         let info = reader.next_frame(&mut buf).unwrap();
         assert_eq!((info.width, info.height), SIZE);
         let pixels: Vec<&[u8]> = buf.chunks(3).collect();
-        let orange = pixels.iter().filter(|p| p[0] > 200 && p[1] > 90 && p[1] < 130 && p[2] < 40).count();
-        let dark = pixels.iter().filter(|p| p[0] < 60 && p[1] < 60 && p[2] < 60).count();
+        let orange = pixels
+            .iter()
+            .filter(|p| p[0] > 200 && p[1] > 90 && p[1] < 130 && p[2] < 40)
+            .count();
+        let dark = pixels
+            .iter()
+            .filter(|p| p[0] < 60 && p[1] < 60 && p[2] < 60)
+            .count();
         assert!(orange > 200, "{orange} front pixels");
         // Text and axes in black.
         assert!(dark > 2000, "{dark} dark pixels");

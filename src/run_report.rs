@@ -267,6 +267,202 @@ pub fn layout(preds: &[Vec<usize>]) -> Vec<(usize, usize)> {
     column.into_iter().zip(row).collect()
 }
 
+/// A box of the diagram, px.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Rect {
+    x: f64,
+    y: f64,
+    w: f64,
+    h: f64,
+}
+
+/// Node height, px.
+const BOX_H: f64 = 46.0;
+/// Output pill height, px (centred in a node-sized slot).
+const PILL_H: f64 = 26.0;
+const DIAGRAM_MARGIN: f64 = 12.0;
+/// Width of a diagram section's content, px (the page's width less paddings).
+const DIAGRAM_FIT_WIDTH: f64 = 1130.0;
+
+/// Where the boxes of a layered layout go: left to right (layers are columns, the usual
+/// orientation), or top to bottom when left to right would have to shrink the text a lot and
+/// top to bottom fits the page. Items from `first_pill` on are output pills.
+struct DiagramGeometry {
+    /// Slot of each item: a node's box; a pill is drawn inside its slot (see [`Self::shape`]).
+    slots: Vec<Rect>,
+    item_w: Vec<f64>,
+    first_pill: usize,
+    vertical: bool,
+    width: f64,
+    height: f64,
+}
+
+impl DiagramGeometry {
+    fn new(places: &[(usize, usize)], item_w: &[f64], first_pill: usize) -> DiagramGeometry {
+        let horizontal = Self::left_to_right(places, item_w, first_pill);
+        if horizontal.width <= 1.25 * DIAGRAM_FIT_WIDTH {
+            return horizontal;
+        }
+        let vertical = Self::top_to_bottom(places, item_w, first_pill);
+        if vertical.width <= DIAGRAM_FIT_WIDTH
+            || (horizontal.width > DIAGRAM_MAX_SCALED_WIDTH && vertical.width < horizontal.width)
+        {
+            vertical
+        } else {
+            horizontal
+        }
+    }
+
+    /// Items per layer.
+    fn per_layer(places: &[(usize, usize)]) -> Vec<usize> {
+        let layers = places.iter().map(|p| p.0 + 1).max().unwrap_or(0);
+        let mut per_layer = vec![0usize; layers];
+        for &(c, _) in places {
+            per_layer[c] += 1;
+        }
+        per_layer
+    }
+
+    /// Columns as wide as their widest box, 56 px apart; rows 60 px apart, each column centred.
+    fn left_to_right(
+        places: &[(usize, usize)],
+        item_w: &[f64],
+        first_pill: usize,
+    ) -> DiagramGeometry {
+        const ROW_PITCH: f64 = 60.0;
+        const COL_GAP: f64 = 56.0;
+        let per_layer = Self::per_layer(places);
+        let mut column_w = vec![0.0f64; per_layer.len()];
+        for (&(c, _), &w) in places.iter().zip(item_w) {
+            column_w[c] = column_w[c].max(w);
+        }
+        let mut column_x = Vec::with_capacity(column_w.len());
+        let mut x = DIAGRAM_MARGIN;
+        for w in &column_w {
+            column_x.push(x);
+            x += w + COL_GAP;
+        }
+        let max_rows = per_layer.iter().copied().max().unwrap_or(0).max(1);
+        let inner_h = (max_rows as f64 - 1.0) * ROW_PITCH + BOX_H;
+        let slots = places
+            .iter()
+            .map(|&(c, r)| {
+                let span = (per_layer[c] as f64 - 1.0) * ROW_PITCH + BOX_H;
+                Rect {
+                    x: column_x[c],
+                    y: DIAGRAM_MARGIN + (inner_h - span) / 2.0 + r as f64 * ROW_PITCH,
+                    w: column_w[c],
+                    h: BOX_H,
+                }
+            })
+            .collect();
+        let inner_w =
+            column_w.iter().sum::<f64>() + COL_GAP * column_w.len().saturating_sub(1) as f64;
+        DiagramGeometry {
+            slots,
+            item_w: item_w.to_vec(),
+            first_pill,
+            vertical: false,
+            width: inner_w + 2.0 * DIAGRAM_MARGIN,
+            height: inner_h + 2.0 * DIAGRAM_MARGIN,
+        }
+    }
+
+    /// Layers as rows 44 px apart, boxes 20 px apart, each row centred.
+    fn top_to_bottom(
+        places: &[(usize, usize)],
+        item_w: &[f64],
+        first_pill: usize,
+    ) -> DiagramGeometry {
+        const LAYER_GAP: f64 = 44.0;
+        const ITEM_GAP: f64 = 20.0;
+        let layers = Self::per_layer(places).len();
+        let mut members: Vec<Vec<usize>> = vec![Vec::new(); layers];
+        for (i, &(c, _)) in places.iter().enumerate() {
+            members[c].push(i);
+        }
+        let layer_w: Vec<f64> = members
+            .iter_mut()
+            .map(|m| {
+                m.sort_by_key(|&i| places[i].1);
+                m.iter().map(|&i| item_w[i]).sum::<f64>()
+                    + ITEM_GAP * m.len().saturating_sub(1) as f64
+            })
+            .collect();
+        let inner_w = layer_w.iter().copied().fold(0.0, f64::max);
+        let mut slots = vec![
+            Rect {
+                x: 0.0,
+                y: 0.0,
+                w: 0.0,
+                h: BOX_H,
+            };
+            places.len()
+        ];
+        for (c, m) in members.iter().enumerate() {
+            let mut x = DIAGRAM_MARGIN + (inner_w - layer_w[c]) / 2.0;
+            for &i in m {
+                slots[i] = Rect {
+                    x,
+                    y: DIAGRAM_MARGIN + c as f64 * (BOX_H + LAYER_GAP),
+                    w: item_w[i],
+                    h: BOX_H,
+                };
+                x += item_w[i] + ITEM_GAP;
+            }
+        }
+        DiagramGeometry {
+            slots,
+            item_w: item_w.to_vec(),
+            first_pill,
+            vertical: true,
+            width: inner_w + 2.0 * DIAGRAM_MARGIN,
+            height: 2.0 * DIAGRAM_MARGIN + layers as f64 * (BOX_H + LAYER_GAP)
+                - if layers > 0 { LAYER_GAP } else { 0.0 },
+        }
+    }
+
+    /// The drawn box of item `i`: a node fills its slot; a pill is `PILL_H` high, its own
+    /// width, at the slot's left and vertically centred.
+    fn shape(&self, i: usize) -> Rect {
+        let slot = self.slots[i];
+        if i < self.first_pill {
+            slot
+        } else {
+            Rect {
+                x: slot.x,
+                y: slot.y + (BOX_H - PILL_H) / 2.0,
+                w: self.item_w[i].min(slot.w),
+                h: PILL_H,
+            }
+        }
+    }
+
+    /// A cubic curve from item `from` to item `to`: right side to left side, or bottom to top.
+    fn edge(&self, from: usize, to: usize) -> String {
+        let (a, b) = (self.shape(from), self.shape(to));
+        if self.vertical {
+            let (x1, y1) = (a.x + a.w / 2.0, a.y + a.h);
+            let (x2, y2) = (b.x + b.w / 2.0, b.y - 2.0);
+            let dy = ((y2 - y1) / 2.0).max(18.0);
+            format!(
+                "M{x1:.1},{y1:.1} C{x1:.1},{:.1} {x2:.1},{:.1} {x2:.1},{y2:.1}",
+                y1 + dy,
+                y2 - dy
+            )
+        } else {
+            let (x1, y1) = (a.x + a.w, a.y + a.h / 2.0);
+            let (x2, y2) = (b.x - 2.0, b.y + b.h / 2.0);
+            let dx = ((x2 - x1) / 2.0).max(24.0);
+            format!(
+                "M{x1:.1},{y1:.1} C{:.1},{y1:.1} {:.1},{y2:.1} {x2:.1},{y2:.1}",
+                x1 + dx,
+                x2 - dx
+            )
+        }
+    }
+}
+
 /// Estimated width (px) of a node name of `chars` characters (13 px, semi-bold).
 fn name_width(chars: usize) -> f64 {
     chars as f64 * 8.0
@@ -331,9 +527,7 @@ impl Page<'_> {
     fn render(&self) -> String {
         let mut html = String::with_capacity(1 << 16);
         html.push_str("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n");
-        html.push_str(
-            "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n",
-        );
+        html.push_str("<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n");
         html.push_str(&format!(
             "<title>{} — ocellus run report</title>\n<style>{STYLE}</style>\n</head>\n<body>\n",
             escape(&self.graph.name)
@@ -364,7 +558,10 @@ impl Page<'_> {
         }
         let mut facts: Vec<(String, String)> = vec![(
             "graph".into(),
-            format!("<code>{}</code>", escape(&self.args.graph.display().to_string())),
+            format!(
+                "<code>{}</code>",
+                escape(&self.args.graph.display().to_string())
+            ),
         )];
         if !self.args.set.is_empty() {
             let sets: Vec<String> = self
@@ -510,16 +707,10 @@ impl Page<'_> {
             .collect();
         preds.extend(outputs.iter().map(|&(node, _)| vec![node]));
         let places = layout(&preds);
-        let columns = places.iter().map(|p| p.0 + 1).max().unwrap_or(0);
-
-        const BOX_H: f64 = 46.0;
-        const ROW_PITCH: f64 = 60.0;
-        const COL_GAP: f64 = 56.0;
-        const MARGIN: f64 = 12.0;
-        const PILL_H: f64 = 26.0;
-        // Each column is as wide as its widest label needs.
-        let pill_w = |name: &str| (small_width(name.chars().count()) * 1.1 + 26.0).clamp(64.0, 300.0);
-        let item_w: Vec<f64> = (0..places.len())
+        let items = places.len();
+        let pill_w =
+            |name: &str| (small_width(name.chars().count()) * 1.1 + 26.0).clamp(64.0, 300.0);
+        let item_w: Vec<f64> = (0..items)
             .map(|i| match (graph.nodes.get(i), i.checked_sub(n)) {
                 (Some(node), _) => {
                     let time_chars = self.median_ms(i).map_or(0, |ms| render_ms(ms).len() + 2);
@@ -532,39 +723,8 @@ impl Page<'_> {
                 (None, None) => 64.0,
             })
             .collect();
-        let mut column_w = vec![0.0f64; columns];
-        let mut per_column = vec![0usize; columns];
-        for (&(c, _), &w) in places.iter().zip(&item_w) {
-            column_w[c] = column_w[c].max(w);
-            per_column[c] += 1;
-        }
-        let column_x: Vec<f64> = column_w
-            .iter()
-            .scan(MARGIN, |x, w| {
-                let here = *x;
-                *x += w + COL_GAP;
-                Some(here)
-            })
-            .collect();
-        let max_rows = per_column.iter().copied().max().unwrap_or(0).max(1);
-        let inner_h = (max_rows as f64 - 1.0) * ROW_PITCH + BOX_H;
-        let height = 2.0 * MARGIN + inner_h;
-        // Each column centred vertically; `pos[i]` is the top-left corner of item i's slot.
-        let pos: Vec<(f64, f64)> = places
-            .iter()
-            .map(|&(c, r)| {
-                let span = (per_column[c] as f64 - 1.0) * ROW_PITCH + BOX_H;
-                (
-                    column_x[c],
-                    MARGIN + (inner_h - span) / 2.0 + r as f64 * ROW_PITCH,
-                )
-            })
-            .collect();
-        let box_w = |i: usize| places.get(i).map_or(120.0, |p| column_w[p.0]);
-        let width = column_x.last().copied().unwrap_or(MARGIN)
-            + column_w.last().copied().unwrap_or(0.0)
-            + MARGIN;
-
+        let geometry = DiagramGeometry::new(&places, &item_w, n);
+        let (width, height) = (geometry.width, geometry.height);
         let fit = if width <= DIAGRAM_MAX_SCALED_WIDTH {
             " style=\"max-width:100%;height:auto\""
         } else {
@@ -578,52 +738,41 @@ impl Page<'_> {
              <path d=\"M0,0 L10,5 L0,10 z\" fill=\"#868e96\"/></marker></defs>\n",
             escape(&graph.name)
         );
-        let curve = |x1: f64, y1: f64, x2: f64, y2: f64| {
-            let dx = ((x2 - x1) / 2.0).max(24.0);
-            format!(
-                "M{x1:.1},{y1:.1} C{:.1},{y1:.1} {:.1},{y2:.1} {x2:.1},{y2:.1}",
-                x1 + dx,
-                x2 - dx
-            )
-        };
         for (src, dst, mapped, labels) in &edges {
-            let (sx, sy) = pos[*src];
-            let (dx, dy) = pos[*dst];
             svg.push_str(&format!(
                 "<path class=\"edge{}\" d=\"{}\" marker-end=\"url(#arrow)\"><title>{}{}</title></path>\n",
                 if *mapped { " mapped" } else { "" },
-                curve(sx + box_w(*src), sy + BOX_H / 2.0, dx - 2.0, dy + BOX_H / 2.0),
+                geometry.edge(*src, *dst),
                 escape(&labels.join("\n")),
                 if *mapped { "\n(mapped over the list)" } else { "" }
             ));
         }
         for (k, (node, name)) in outputs.iter().enumerate() {
-            let (sx, sy) = pos[*node];
-            let (x, y) = pos[n + k];
-            let cy = y + BOX_H / 2.0;
-            let w = item_w[n + k];
-            let max_pill = ((w - 24.0) / (6.6 * 1.1)).floor() as usize;
+            let r = geometry.shape(n + k);
+            let max_pill = ((r.w - 24.0) / (6.6 * 1.1)).floor() as usize;
             svg.push_str(&format!(
                 "<path class=\"edge out\" d=\"{}\" marker-end=\"url(#arrow)\"/>\n",
-                curve(sx + box_w(*node), sy + BOX_H / 2.0, x - 2.0, cy)
+                geometry.edge(*node, n + k)
             ));
             svg.push_str(&format!(
                 "<g class=\"output\"><title>output {full}</title><rect x=\"{x:.1}\" \
-                 y=\"{top:.1}\" width=\"{w:.1}\" height=\"{PILL_H}\" rx=\"{round:.1}\"/>\
+                 y=\"{y:.1}\" width=\"{w:.1}\" height=\"{h:.1}\" rx=\"{round:.1}\"/>\
                  <text x=\"{mid:.1}\" y=\"{base:.1}\" text-anchor=\"middle\">{label}</text></g>\n",
                 full = escape(name),
                 label = escape(&truncate(name, max_pill)),
-                top = cy - PILL_H / 2.0,
-                round = PILL_H / 2.0,
-                mid = x + w / 2.0,
-                base = cy + 4.3,
+                x = r.x,
+                y = r.y,
+                w = r.w,
+                h = r.h,
+                round = r.h / 2.0,
+                mid = r.x + r.w / 2.0,
+                base = r.y + r.h / 2.0 + 4.3,
             ));
         }
         for (i, node) in graph.nodes.iter().enumerate() {
-            let (x, y) = pos[i];
-            let box_w = box_w(i);
-            let max_name = ((box_w - 24.0) / 8.0).floor() as usize;
-            let max_op = ((box_w - 24.0) / 6.6).floor() as usize;
+            let Rect { x, y, w, h } = geometry.shape(i);
+            let max_name = ((w - 24.0) / 8.0).floor() as usize;
+            let max_op = ((w - 24.0) / 6.6).floor() as usize;
             let status = self.status(i);
             let (stroke, fill) = status_colors(status);
             let status_text = status.map_or("not run", status_name);
@@ -637,9 +786,9 @@ impl Page<'_> {
             );
             svg.push_str(&format!(
                 "<g class=\"node s-{status_text}\"><title>{}</title>\
-                 <rect x=\"{x:.1}\" y=\"{y:.1}\" width=\"{box_w:.1}\" height=\"{BOX_H}\" rx=\"6\" \
+                 <rect x=\"{x:.1}\" y=\"{y:.1}\" width=\"{w:.1}\" height=\"{h}\" rx=\"6\" \
                  fill=\"{fill}\" stroke=\"{stroke}\" stroke-width=\"1.5\"/>\
-                 <rect x=\"{x:.1}\" y=\"{y:.1}\" width=\"7\" height=\"{BOX_H}\" rx=\"3\" fill=\"{stroke}\"/>\
+                 <rect x=\"{x:.1}\" y=\"{y:.1}\" width=\"7\" height=\"{h}\" rx=\"3\" fill=\"{stroke}\"/>\
                  <text class=\"name\" x=\"{:.1}\" y=\"{:.1}\">{}</text>\
                  <text class=\"op\" x=\"{:.1}\" y=\"{:.1}\">{}</text>",
                 escape(&tip),
@@ -653,7 +802,7 @@ impl Page<'_> {
             if let Some(t) = time {
                 svg.push_str(&format!(
                     "<text class=\"time\" x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"end\">{}</text>",
-                    x + box_w - 8.0,
+                    x + w - 8.0,
                     y + 36.0,
                     escape(&t)
                 ));
@@ -668,9 +817,7 @@ impl Page<'_> {
 
     fn nodes_section(&self) -> String {
         let n = self.graph.nodes.len();
-        let max_ms = (0..n)
-            .filter_map(|i| self.median_ms(i))
-            .fold(0.0, f64::max);
+        let max_ms = (0..n).filter_map(|i| self.median_ms(i)).fold(0.0, f64::max);
         let max_bytes = (0..n).map(|i| self.output_bytes(i)).max().unwrap_or(0);
         let mut s = String::from(
             "<section>\n<h2>Per-node time and memory</h2>\n<table class=\"nodes\">\n<thead><tr>\
@@ -691,13 +838,19 @@ impl Page<'_> {
                         ),
                         _ => String::new(),
                     };
-                    (format!("{}{spread}", render_ms(ms)), bar(ms, max_ms, "time"))
+                    (
+                        format!("{}{spread}", render_ms(ms)),
+                        bar(ms, max_ms, "time"),
+                    )
                 }
                 None => ("—".to_string(), String::new()),
             };
             let bytes = self.output_bytes(i);
             let memory = if bytes > 0 {
-                (render_bytes(bytes as u64), bar(bytes as f64, max_bytes as f64, "mem"))
+                (
+                    render_bytes(bytes as u64),
+                    bar(bytes as f64, max_bytes as f64, "mem"),
+                )
             } else {
                 ("—".to_string(), String::new())
             };
@@ -790,11 +943,7 @@ impl Page<'_> {
                 .map(|n| format!("<code>{}</code>", escape(&n.name)))
                 .collect();
             if !names.is_empty() {
-                s.push_str(&format!(
-                    "<p>{} {}</p>\n",
-                    chip(status),
-                    names.join(", ")
-                ));
+                s.push_str(&format!("<p>{} {}</p>\n", chip(status), names.join(", ")));
             }
         }
         s.push_str("</section>\n");
@@ -820,10 +969,7 @@ impl Page<'_> {
                 .and_then(|n| n.info.outputs.get(output.from.port))
                 .map_or("?", |p| p.name.as_str());
             let index = output.index.map(|k| format!("[{k}]")).unwrap_or_default();
-            let source = format!(
-                "{}.{port}{index}",
-                node.map_or("?", |n| n.name.as_str())
-            );
+            let source = format!("{}.{port}{index}", node.map_or("?", |n| n.name.as_str()));
             let value = self.last.output(&output.name);
             let ty = value.map_or_else(|| output.ty.to_string(), |v| v.port_type().to_string());
             let wide = match value {
@@ -869,7 +1015,9 @@ fn bar(value: f64, max: f64, class: &str) -> String {
     } else {
         0.0
     };
-    format!("<div class=\"track\"><div class=\"bar {class}\" style=\"width:{percent:.1}%\"></div></div>")
+    format!(
+        "<div class=\"track\"><div class=\"bar {class}\" style=\"width:{percent:.1}%\"></div></div>"
+    )
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1448,8 +1596,8 @@ fn downscale(p: Pixels, max_side: usize) -> Pixels {
 
 /// `data:image/png;base64,…` of 8-bit pixels.
 fn png_data_uri(p: &Pixels) -> Result<String, String> {
-    let image = Image::from_u8(p.width, p.height, p.channels, p.data.clone())
-        .map_err(|e| e.to_string())?;
+    let image =
+        Image::from_u8(p.width, p.height, p.channels, p.data.clone()).map_err(|e| e.to_string())?;
     let png = encode_image(&image, ImageFormat::Png).map_err(|e| e.to_string())?;
     Ok(format!("data:image/png;base64,{}", base64(&png)))
 }
@@ -1462,7 +1610,11 @@ fn img_tag(p: &Pixels, alt: &str, min_width: usize) -> Result<String, String> {
     } else {
         1
     };
-    let class = if factor > 1 { " class=\"pixelated\"" } else { "" };
+    let class = if factor > 1 {
+        " class=\"pixelated\""
+    } else {
+        ""
+    };
     Ok(format!(
         "<img{class} src=\"{uri}\" width=\"{}\" height=\"{}\" alt=\"{}\">",
         p.width * factor,
@@ -1472,12 +1624,7 @@ fn img_tag(p: &Pixels, alt: &str, min_width: usize) -> Result<String, String> {
 }
 
 fn image_html(image: &Image, alt: &str, max_side: usize) -> String {
-    let size = format!(
-        "{}×{} {}",
-        image.width(),
-        image.height(),
-        image.format()
-    );
+    let size = format!("{}×{} {}", image.width(), image.height(), image.format());
     if image.is_empty() {
         return format!("<p class=\"muted\">empty image ({size})</p>\n");
     }
@@ -1488,7 +1635,11 @@ fn image_html(image: &Image, alt: &str, max_side: usize) -> String {
     } else {
         String::new()
     };
-    let min_width = if max_side >= MAX_PREVIEW_SIDE { 240 } else { 96 };
+    let min_width = if max_side >= MAX_PREVIEW_SIDE {
+        240
+    } else {
+        96
+    };
     match img_tag(&pixels, alt, min_width) {
         Ok(img) => format!(
             "<div class=\"preview\">{img}</div>\n<p class=\"note\">{}{}{}</p>\n",
@@ -1640,12 +1791,8 @@ fn splat_scene(
             if !p.iter().all(|c| c.is_finite()) {
                 continue;
             }
-            let x = [0, 1, 2].map(|k| {
-                (0..3)
-                    .map(|j| r[3 * k + j] * f64::from(p[j]))
-                    .sum::<f64>()
-                    + t[k]
-            });
+            let x = [0, 1, 2]
+                .map(|k| (0..3).map(|j| r[3 * k + j] * f64::from(p[j])).sum::<f64>() + t[k]);
             if x[2] <= 1e-12 {
                 continue;
             }
@@ -1844,11 +1991,7 @@ mod tests {
         assert_eq!(columns, vec![0, 1, 1, 2, 0, 2]);
         // Rows are distinct within a column.
         for c in 0..3 {
-            let mut rows: Vec<usize> = places
-                .iter()
-                .filter(|p| p.0 == c)
-                .map(|p| p.1)
-                .collect();
+            let mut rows: Vec<usize> = places.iter().filter(|p| p.0 == c).map(|p| p.1).collect();
             rows.sort_unstable();
             assert_eq!(rows, (0..rows.len()).collect::<Vec<_>>());
         }
@@ -1882,7 +2025,9 @@ mod tests {
 
     #[test]
     fn thumbnails_render_meshes_and_points() {
-        let mesh = Arc::new(ocellus_nodes::render::primitives::bumpy_icosphere(2, 0.05, 1));
+        let mesh = Arc::new(ocellus_nodes::render::primitives::bumpy_icosphere(
+            2, 0.05, 1,
+        ));
         let thumb = render_mesh(&mesh).unwrap();
         assert_eq!((thumb.width, thumb.height), (THUMB_WIDTH, THUMB_HEIGHT));
         let background = thumb

@@ -372,7 +372,12 @@ pub fn sweep(registry: &mut Registry, args: &SweepArgs, plugins: Plugins) -> Exi
             outputs.push(m.output.clone());
         }
     }
-    let recompute: Vec<String> = varies.iter().map(|v| v.node.clone()).collect::<BTreeSet<_>>().into_iter().collect();
+    let recompute: Vec<String> = varies
+        .iter()
+        .map(|v| v.node.clone())
+        .collect::<BTreeSet<_>>()
+        .into_iter()
+        .collect();
     let cache = Arc::new(MemoryCache::new());
     let options = RunOptions {
         threads: args.threads,
@@ -459,7 +464,14 @@ pub fn sweep(registry: &mut Registry, args: &SweepArgs, plugins: Plugins) -> Exi
         })
         .collect();
     let csv = to_csv(&varies, &metrics, &points, &fronts);
-    let markdown = to_markdown(&args.graph, &varies, &metrics, &points, &fronts, args.repeat);
+    let markdown = to_markdown(
+        &args.graph,
+        &varies,
+        &metrics,
+        &points,
+        &fronts,
+        args.repeat,
+    );
     let mut code = ExitCode::SUCCESS;
     let write = |path: &Path, bytes: &[u8]| -> bool {
         match ocellus_engine::image_io::write_atomic(path, bytes) {
@@ -496,11 +508,17 @@ pub fn sweep(registry: &mut Registry, args: &SweepArgs, plugins: Plugins) -> Exi
                     Goal::Max => "higher is better",
                 }
             ),
-            x_label: format!("time of the recomputed nodes, ms (median of {})", args.repeat),
+            x_label: format!(
+                "time of the recomputed nodes, ms (median of {})",
+                args.repeat
+            ),
             y_label: m.name.clone(),
             points: points.iter().map(|p| (p.time_ms, p.metrics[j])).collect(),
             front: fronts[j].clone(),
-            labels: points.iter().map(|p| label_of(&varies, &p.values)).collect(),
+            labels: points
+                .iter()
+                .map(|p| label_of(&varies, &p.values))
+                .collect(),
         };
         let stem = format!("pareto_{}", file_stem(&m.name));
         let rendered = [
@@ -535,7 +553,10 @@ fn label_of(varies: &[Vary], values: &[String]) -> String {
         .iter()
         .zip(values)
         .map(|(v, value)| {
-            let param = v.target.rsplit_once('.').map_or(v.target.as_str(), |(_, p)| p);
+            let param = v
+                .target
+                .rsplit_once('.')
+                .map_or(v.target.as_str(), |(_, p)| p);
             format!("{param}={value}")
         })
         .collect::<Vec<_>>()
@@ -545,7 +566,13 @@ fn label_of(varies: &[Vary], values: &[String]) -> String {
 /// A file-name-safe version of a metric name.
 fn file_stem(name: &str) -> String {
     name.chars()
-        .map(|c| if c.is_ascii_alphanumeric() || c == '_' || c == '-' { c } else { '_' })
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '_' || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
         .collect()
 }
 
@@ -560,20 +587,39 @@ fn csv_field(text: &str) -> String {
 
 /// `sweep.csv`: one row per grid point — the varied values, times, metrics, front membership
 /// per metric (1/0), and the problem, if any.
-pub fn to_csv(varies: &[Vary], metrics: &[Metric], points: &[Point], fronts: &[Vec<usize>]) -> String {
+pub fn to_csv(
+    varies: &[Vary],
+    metrics: &[Metric],
+    points: &[Point],
+    fronts: &[Vec<usize>],
+) -> String {
     let mut header: Vec<String> = varies.iter().map(|v| csv_field(&v.target)).collect();
     header.push("time_ms".into());
     header.push("wall_ms".into());
     header.extend(metrics.iter().map(|m| csv_field(&m.name)));
-    header.extend(metrics.iter().map(|m| csv_field(&format!("pareto:{}", m.name))));
+    header.extend(
+        metrics
+            .iter()
+            .map(|m| csv_field(&format!("pareto:{}", m.name))),
+    );
     header.push("problem".into());
     let mut out = header.join(",") + "\n";
     for (i, p) in points.iter().enumerate() {
         let mut row: Vec<String> = p.values.iter().map(|v| csv_field(v)).collect();
         row.push(format!("{}", p.time_ms));
         row.push(format!("{}", p.wall_ms));
-        row.extend(p.metrics.iter().map(|v| if v.is_finite() { format!("{v}") } else { String::new() }));
-        row.extend(fronts.iter().map(|f| if f.contains(&i) { "1" } else { "0" }.to_string()));
+        row.extend(p.metrics.iter().map(|v| {
+            if v.is_finite() {
+                format!("{v}")
+            } else {
+                String::new()
+            }
+        }));
+        row.extend(
+            fronts
+                .iter()
+                .map(|f| if f.contains(&i) { "1" } else { "0" }.to_string()),
+        );
         row.push(csv_field(&p.problem));
         out += &(row.join(",") + "\n");
     }
@@ -671,7 +717,14 @@ mod tests {
         assert_eq!(v.values, [r#""a,b.png""#, r#""c.png""#]);
         let v = parse_vary("sub/inner.k=Some((1, 2)),None").unwrap();
         assert_eq!((v.node.as_str(), v.values.len()), ("sub/inner", 2));
-        for bad in ["ransac.threshold_px", "threshold=1", "a.b=1,,2", "a.b=[1,2", "a.b=1,1", ".b=1"] {
+        for bad in [
+            "ransac.threshold_px",
+            "threshold=1",
+            "a.b=1,,2",
+            "a.b=[1,2",
+            "a.b=1,1",
+            ".b=1",
+        ] {
             assert!(parse_vary(bad).is_err(), "{bad}");
         }
     }
@@ -679,7 +732,10 @@ mod tests {
     #[test]
     fn metrics_parse_with_goals() {
         let m = parse_metric("error.corner_error_px").unwrap();
-        assert_eq!((m.output.as_str(), m.field.as_deref(), m.goal), ("error", Some("corner_error_px"), Goal::Min));
+        assert_eq!(
+            (m.output.as_str(), m.field.as_deref(), m.goal),
+            ("error", Some("corner_error_px"), Goal::Min)
+        );
         let m = parse_metric("quality.psnr_db:max").unwrap();
         assert_eq!((m.name.as_str(), m.goal), ("quality.psnr_db", Goal::Max));
         let m = parse_metric("inliers").unwrap();
@@ -710,7 +766,15 @@ mod tests {
     /// ties in both stay, and the goal flips what "better" means.
     #[test]
     fn pareto_fronts() {
-        let pts = [(1.0, 9.0), (2.0, 4.0), (3.0, 5.0), (4.0, 1.0), (2.0, 4.0), (0.5, f64::NAN), (5.0, 1.0)];
+        let pts = [
+            (1.0, 9.0),
+            (2.0, 4.0),
+            (3.0, 5.0),
+            (4.0, 1.0),
+            (2.0, 4.0),
+            (0.5, f64::NAN),
+            (5.0, 1.0),
+        ];
         assert_eq!(pareto_front(&pts, Goal::Min), vec![0, 1, 4, 3]);
         // Maximizing: the fastest point is best in time, and nothing beats 9.0.
         assert_eq!(pareto_front(&pts, Goal::Max), vec![0]);
@@ -726,7 +790,8 @@ mod tests {
             .map(|i| (((i * 7) % 13) as f64, ((i * 11) % 17) as f64))
             .collect();
         let front = pareto_front(&pts, Goal::Min);
-        let dominates = |a: (f64, f64), b: (f64, f64)| a.0 <= b.0 && a.1 <= b.1 && (a.0 < b.0 || a.1 < b.1);
+        let dominates =
+            |a: (f64, f64), b: (f64, f64)| a.0 <= b.0 && a.1 <= b.1 && (a.0 < b.0 || a.1 < b.1);
         for (i, &p) in pts.iter().enumerate() {
             let on = front.contains(&i);
             assert_eq!(on, !pts.iter().any(|&q| dominates(q, p)), "point {i} {p:?}");
@@ -741,8 +806,20 @@ mod tests {
         let varies = vec![parse_vary("r.k=1,2").unwrap()];
         let metrics = vec![parse_metric("e.x").unwrap()];
         let points = vec![
-            Point { values: vec!["1".into()], time_ms: 1.0, wall_ms: 2.0, metrics: vec![3.0], problem: String::new() },
-            Point { values: vec!["2".into()], time_ms: 2.0, wall_ms: 3.0, metrics: vec![f64::NAN], problem: "node `r` failed, \"x\"".into() },
+            Point {
+                values: vec!["1".into()],
+                time_ms: 1.0,
+                wall_ms: 2.0,
+                metrics: vec![3.0],
+                problem: String::new(),
+            },
+            Point {
+                values: vec!["2".into()],
+                time_ms: 2.0,
+                wall_ms: 3.0,
+                metrics: vec![f64::NAN],
+                problem: "node `r` failed, \"x\"".into(),
+            },
         ];
         let fronts = vec![vec![0]];
         let csv = to_csv(&varies, &metrics, &points, &fronts);

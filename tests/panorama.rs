@@ -25,7 +25,10 @@ fn metric(outputs: &[(String, Value)], name: &str, field: &str) -> f64 {
 
 fn invert_affine(m: &[f64]) -> [f64; 9] {
     // The panorama's homography of the reference view is a pure translation.
-    assert_eq!((m[0], m[1], m[3], m[4], m[6], m[7], m[8]), (1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0));
+    assert_eq!(
+        (m[0], m[1], m[3], m[4], m[6], m[7], m[8]),
+        (1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0)
+    );
     [1.0, 0.0, -m[2], 0.0, 1.0, -m[5], 0.0, 0.0, 1.0]
 }
 
@@ -47,11 +50,21 @@ fn panorama_matches_the_scene() {
     let overlap_rms = metric(outputs, "metrics", "overlap_rms");
     assert!(overlap_rms < 3.0, "overlap rms {overlap_rms}");
 
-    let Value::Image(pano) = output(outputs, "panorama") else { panic!() };
-    let Value::Image(scene) = output(outputs, "scene") else { panic!() };
-    let Value::Image(coverage) = output(outputs, "coverage") else { panic!() };
-    let Value::List(homographies) = output(outputs, "homographies") else { panic!() };
-    let Value::Matrix(middle) = &homographies.items[1] else { panic!() };
+    let Value::Image(pano) = output(outputs, "panorama") else {
+        panic!()
+    };
+    let Value::Image(scene) = output(outputs, "scene") else {
+        panic!()
+    };
+    let Value::Image(coverage) = output(outputs, "coverage") else {
+        panic!()
+    };
+    let Value::List(homographies) = output(outputs, "homographies") else {
+        panic!()
+    };
+    let Value::Matrix(middle) = &homographies.items[1] else {
+        panic!()
+    };
     let middle_from_pano = invert_affine(&middle.data);
     // About the scene's covered width: views span x 51..1541 of the scene.
     assert!((1450..1530).contains(&pano.width()), "{}", pano.width());
@@ -71,7 +84,10 @@ fn panorama_matches_the_scene() {
             }
             covered += 1;
             // Panorama pixel → middle view → scene, sampled bilinearly as the views were.
-            let (vx, vy) = (x as f64 + middle_from_pano[2], y as f64 + middle_from_pano[5]);
+            let (vx, vy) = (
+                x as f64 + middle_from_pano[2],
+                y as f64 + middle_from_pano[5],
+            );
             let (sx, sy) = (vx + SCENE_FROM_MIDDLE[2], vy + SCENE_FROM_MIDDLE[5]);
             if sx < 0.0 || sy < 0.0 || sx > (sw - 1) as f64 || sy > (sh - 1) as f64 {
                 continue;

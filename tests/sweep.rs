@@ -61,11 +61,17 @@ fn ransac_trials_trade_time_for_accuracy() {
         .collect();
     assert_eq!(rows.len(), 8, "{csv}");
     // The first --vary changes slowest.
-    let settings: Vec<(&str, &str)> = rows.iter().map(|r| (r[0].as_str(), r[1].as_str())).collect();
+    let settings: Vec<(&str, &str)> = rows
+        .iter()
+        .map(|r| (r[0].as_str(), r[1].as_str()))
+        .collect();
     assert_eq!(settings[..3], [("2", "1"), ("2", "3"), ("20", "1")]);
     let num = |r: &Vec<String>, k: usize| r[k].parse::<f64>().unwrap();
     let error = |trials: &str, threshold: &str| {
-        let r = rows.iter().find(|r| r[0] == trials && r[1] == threshold).unwrap();
+        let r = rows
+            .iter()
+            .find(|r| r[0] == trials && r[1] == threshold)
+            .unwrap();
         num(r, 4)
     };
     // Two trials at 25 % inliers almost never draw four inliers; 2000 always do.
@@ -86,14 +92,26 @@ fn ransac_trials_trade_time_for_accuracy() {
     // Every row off the front is dominated by a front row.
     for r in rows.iter().filter(|r| r[6] == "0") {
         let (t, e) = (num(r, 2), num(r, 4));
-        assert!(front.iter().any(|&(ft, fe)| ft <= t && fe <= e), "{r:?} vs {front:?}");
+        assert!(
+            front.iter().any(|&(ft, fe)| ft <= t && fe <= e),
+            "{r:?} vs {front:?}"
+        );
     }
     let md = std::fs::read_to_string(dir.join("sweep.md")).unwrap();
-    assert!(md.contains("| `ransac.max_trials` | `ransac.threshold_px` | time ms |"), "{md}");
-    assert!(md.contains('★') && md.contains("Pareto front of error.corner_error_px"), "{md}");
+    assert!(
+        md.contains("| `ransac.max_trials` | `ransac.threshold_px` | time ms |"),
+        "{md}"
+    );
+    assert!(
+        md.contains('★') && md.contains("Pareto front of error.corner_error_px"),
+        "{md}"
+    );
     for stem in ["pareto_error_corner_error_px", "pareto_inliers"] {
         let svg = std::fs::read_to_string(dir.join(format!("{stem}.svg"))).unwrap();
-        assert!(svg.starts_with("<svg") && svg.contains("Pareto front"), "{stem}");
+        assert!(
+            svg.starts_with("<svg") && svg.contains("Pareto front"),
+            "{stem}"
+        );
         let png = std::fs::read(dir.join(format!("{stem}.png"))).unwrap();
         assert_eq!(&png[1..4], b"PNG");
     }
@@ -107,8 +125,24 @@ fn bad_sweeps_are_clear_errors() {
     let cases: [(&[&str], &str); 5] = [
         (&["--vary", "ransac.max_trials"], "missing `=`"),
         (&["--vary", "ransac.max_trails=1,2"], "max_trails"),
-        (&["--vary", "ransac.max_trials=1,2", "--metric", "eror.corner_error_px"], "no output `eror`"),
-        (&["--vary", "ransac.max_trials=1,2", "--metric", "error.x:best"], "unknown goal"),
+        (
+            &[
+                "--vary",
+                "ransac.max_trials=1,2",
+                "--metric",
+                "eror.corner_error_px",
+            ],
+            "no output `eror`",
+        ),
+        (
+            &[
+                "--vary",
+                "ransac.max_trials=1,2",
+                "--metric",
+                "error.x:best",
+            ],
+            "unknown goal",
+        ),
         (&["--vary", "ransac.max_trials=1,-2"], "max_trials"),
     ];
     for (extra, expected) in cases {

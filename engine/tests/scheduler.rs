@@ -280,7 +280,10 @@ fn recompute_bypasses_the_cache_downstream_of_the_named_nodes() {
         ..options
     };
     let e = run(&graph, &unknown).err().unwrap().to_string();
-    assert!(e.contains("no node `bb`") && e.contains("did you mean `b`"), "{e}");
+    assert!(
+        e.contains("no node `bb`") && e.contains("did you mean `b`"),
+        "{e}"
+    );
 }
 
 #[test]

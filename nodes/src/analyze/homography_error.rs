@@ -286,7 +286,10 @@ mod tests {
         let e = homography_error(&wild, &identity, 100.0, 100.0);
         assert_eq!(e.corner_max_px, MAX_ERROR_PX);
         assert!(e.corner_mean_px.is_finite() && e.grid_rms_px.is_finite());
-        assert_eq!(transfer_distance(&wild, &identity, 50.0, 10.0), MAX_ERROR_PX);
+        assert_eq!(
+            transfer_distance(&wild, &identity, 50.0, 10.0),
+            MAX_ERROR_PX
+        );
     }
 
     #[test]

@@ -54,8 +54,7 @@ pub struct StitchPanorama {
 impl Op for StitchPanorama {
     type Params = StitchParams;
     const ID: &'static str = "geometry.stitch_panorama";
-    const SUMMARY: &'static str =
-        "Warps views related by pairwise homographies onto one image plane and blends them into a panorama.";
+    const SUMMARY: &'static str = "Warps views related by pairwise homographies onto one image plane and blends them into a panorama.";
     const DOC: &'static str = r#"
 `images` are views of a plane (or taken from one centre) in order, and `pairwise[k]` is the
 homography from view k's pixels to view k+1's (what `geometry.find_homography` estimates from
@@ -399,7 +398,11 @@ fn invert(m: &[f64; 9]) -> Option<[f64; 9]> {
 /// (x, y, w) of `h` · (x, y, 1).
 fn apply(h: &[f64; 9], x: f64, y: f64) -> (f64, f64, f64) {
     let w = h[6] * x + h[7] * y + h[8];
-    ((h[0] * x + h[1] * y + h[2]) / w, (h[3] * x + h[4] * y + h[5]) / w, w)
+    (
+        (h[0] * x + h[1] * y + h[2]) / w,
+        (h[3] * x + h[4] * y + h[5]) / w,
+        w,
+    )
 }
 
 /// Each view's homography onto the reference view's plane (see `geometry.stitch_panorama`).
@@ -500,7 +503,7 @@ pub fn stitch(
         let (w, hh) = ((v.width - 1) as f64, (v.height - 1) as f64);
         for (x, y) in [(0.0, 0.0), (w, 0.0), (w, hh), (0.0, hh)] {
             let (px, py, pw) = apply(h, x, y);
-            if !(pw > 0.0 && px.is_finite() && py.is_finite()) {
+            if pw.is_nan() || pw <= 0.0 || !px.is_finite() || !py.is_finite() {
                 return Err(StitchError::Fold { index });
             }
             min_x = min_x.min(px);
@@ -519,7 +522,17 @@ pub fn stitch(
         });
     }
     let (width, height) = (width as usize, height as usize);
-    let shift = [1.0, 0.0, -min_x.ceil(), 0.0, 1.0, -min_y.ceil(), 0.0, 0.0, 1.0];
+    let shift = [
+        1.0,
+        0.0,
+        -min_x.ceil(),
+        0.0,
+        1.0,
+        -min_y.ceil(),
+        0.0,
+        0.0,
+        1.0,
+    ];
     let panorama_from_view: Vec<[f64; 9]> = to_reference.iter().map(|h| mul(&shift, h)).collect();
     let view_from_panorama: Vec<[f64; 9]> = panorama_from_view
         .iter()
@@ -556,7 +569,8 @@ pub fn stitch(
                 sum.iter_mut().for_each(|s| *s = 0.0);
                 for (k, (view, h)) in views.iter().zip(&view_from_panorama).enumerate() {
                     let (vx, vy, w) = apply(h, x as f64, y as f64);
-                    if !(w > 0.0)
+                    if w.is_nan()
+                        || w <= 0.0
                         || !(0.0..=(view.width - 1) as f64).contains(&vx)
                         || !(0.0..=(view.height - 1) as f64).contains(&vy)
                     {
@@ -692,7 +706,11 @@ mod tests {
             // About 80 + 2·57 px wide.
             assert!((180..=205).contains(&pano.width), "{}", pano.width);
             assert!(pano.overlap_fraction > 0.1, "{}", pano.overlap_fraction);
-            assert!(pano.overlap_rms < 0.6, "{blend:?}: overlap rms {}", pano.overlap_rms);
+            assert!(
+                pano.overlap_rms < 0.6,
+                "{blend:?}: overlap rms {}",
+                pano.overlap_rms
+            );
             // Every covered pixel shows the scene point the middle view's mapping gives it.
             let view_from_pano = invert(&pano.panorama_from_view[1]).unwrap();
             let mut worst = 0.0f32;
@@ -723,7 +741,10 @@ mod tests {
         c.reference = Some(0);
         let pano = stitch(&views, &[shift], &c).unwrap();
         assert_eq!((pano.width, pano.height), (30, 10));
-        assert_eq!(pano.panorama_from_view[0], [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        assert_eq!(
+            pano.panorama_from_view[0],
+            [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+        );
         assert_eq!(&pano.samples[..20], &views[0].samples[..20]);
         assert_eq!(pano.overlap_fraction, 10.0 * 10.0 / 300.0);
         assert_eq!(pano.coverage[0], 1);
@@ -736,28 +757,46 @@ mod tests {
         let views = vec![v.clone(), v];
         let id = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
         let c = config(Blend::Feather);
-        assert!(matches!(stitch(&views, &[], &c), Err(StitchError::Count { .. })));
+        assert!(matches!(
+            stitch(&views, &[], &c),
+            Err(StitchError::Count { .. })
+        ));
         assert!(matches!(
             stitch(&views, &[[0.0; 9]], &c),
             Err(StitchError::Homography { index: 0, .. })
         ));
         let mut far = c;
         far.reference = Some(5);
-        assert!(matches!(stitch(&views, &[id], &far), Err(StitchError::Reference { .. })));
+        assert!(matches!(
+            stitch(&views, &[id], &far),
+            Err(StitchError::Reference { .. })
+        ));
         // A perspective that sends part of view 0 behind the reference plane.
         let fold = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, -0.5, 0.0, 1.0];
         let mut first = c;
         first.reference = Some(1);
-        assert!(matches!(stitch(&views, &[fold], &first), Err(StitchError::Fold { index: 0 })));
+        assert!(matches!(
+            stitch(&views, &[fold], &first),
+            Err(StitchError::Fold { index: 0 })
+        ));
         // A huge stretch.
         let stretch = [1000.0, 0.0, 0.0, 0.0, 1000.0, 0.0, 0.0, 0.0, 1.0];
-        assert!(matches!(stitch(&views, &[stretch], &first), Err(StitchError::TooLarge { .. })));
+        assert!(matches!(
+            stitch(&views, &[stretch], &first),
+            Err(StitchError::TooLarge { .. })
+        ));
     }
 
     #[test]
     fn same_result_for_one_and_many_threads() {
         let views: Vec<View> = (0..3)
-            .map(|k| render(&[1.0, 0.0, 30.0 * k as f64, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], 50, 40))
+            .map(|k| {
+                render(
+                    &[1.0, 0.0, 30.0 * k as f64, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                    50,
+                    40,
+                )
+            })
             .collect();
         let shift = [1.0, 0.0, -30.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
         let run = |threads| {
