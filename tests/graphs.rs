@@ -36,6 +36,7 @@ const SNAPSHOTTED: &[&str] = &[
     "sfm.ron",
     "stereo.ron",
     "texture.ron",
+    "tour.ron",
     "track.ron",
     "two_branches.ron",
     "two_view.ron",
@@ -169,6 +170,11 @@ fn segment() {
 #[test]
 fn panorama() {
     check_graph("panorama.ron");
+}
+
+#[test]
+fn tour() {
+    check_graph("tour.ron");
 }
 
 #[test]

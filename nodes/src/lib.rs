@@ -141,6 +141,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<render::raycast::Raycast>()?;
     registry.register::<render::raster::Rasterize>()?;
     registry.register::<render::mesh_scene::MeshScene>()?;
+    registry.register::<render::points::RenderPoints>()?;
     registry.register::<render::trace::Trace>()?;
     registry.register::<optimize::bundle_adjust::BundleAdjust>()?;
     registry.register::<optimize::synthetic::SyntheticScene>()?;

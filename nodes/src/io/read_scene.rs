@@ -1007,6 +1007,26 @@ pub fn parse_scene(src: &str, path: &Path) -> Result<LoadedScene, String> {
     })
 }
 
+/// The files a scene source names (none if it does not parse), remembered per source text and
+/// path: parsing builds the scene's procedural textures, which takes far longer than reading
+/// the file, and an animation fingerprints its scene once per frame.
+fn referenced_files(src: &str, path: &Path) -> Vec<PathBuf> {
+    type Known = std::collections::HashMap<[u8; 32], Vec<PathBuf>>;
+    static KNOWN: std::sync::OnceLock<std::sync::Mutex<Known>> = std::sync::OnceLock::new();
+    let mut key_bytes = src.as_bytes().to_vec();
+    key_bytes.extend_from_slice(path.as_os_str().as_encoded_bytes());
+    let key = ocellus_engine::cache::content_hash(&key_bytes);
+    let known = KNOWN.get_or_init(Default::default);
+    if let Some(files) = known.lock().ok().and_then(|k| k.get(&key).cloned()) {
+        return files;
+    }
+    let files = parse_scene(src, path).map(|l| l.files).unwrap_or_default();
+    if let Ok(mut k) = known.lock() {
+        k.insert(key, files.clone());
+    }
+    files
+}
+
 /// Reads and parses a scene file.
 pub fn read_scene(path: &Path) -> Result<LoadedScene, OpError> {
     let src = std::fs::read_to_string(path).map_err(|e| OpError::io(path, e))?;
@@ -1116,11 +1136,9 @@ impl Operator for ReadScene {
         let text = String::from_utf8_lossy(&src);
         let mut all = src.clone();
         // The files named inside; a scene that does not parse fails in `run` with its message.
-        if let Ok(loaded) = parse_scene(&text, path) {
-            for f in &loaded.files {
-                let bytes = std::fs::read(f).map_err(|e| OpError::io(f, e))?;
-                all.extend_from_slice(&ocellus_engine::cache::content_hash(&bytes));
-            }
+        for f in &referenced_files(&text, path) {
+            let bytes = std::fs::read(f).map_err(|e| OpError::io(f, e))?;
+            all.extend_from_slice(&ocellus_engine::cache::content_hash(&bytes));
         }
         Ok(ocellus_engine::cache::content_hash(&all).to_vec())
     }

@@ -5,6 +5,7 @@
 pub mod bsdf;
 pub mod bvh;
 pub mod mesh_scene;
+pub mod points;
 pub mod primitives;
 pub mod raster;
 pub mod raycast;
