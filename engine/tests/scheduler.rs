@@ -276,12 +276,12 @@ fn recompute_bypasses_the_cache_downstream_of_the_named_nodes() {
     assert_eq!(status("c"), NodeStatus::Idle);
 
     let unknown = RunOptions {
-        recompute: vec!["bb".into()],
+        recompute: vec!["bx".into()],
         ..options
     };
     let e = run(&graph, &unknown).err().unwrap().to_string();
     assert!(
-        e.contains("no node `bb`") && e.contains("did you mean `b`"),
+        e.contains("no node `bx`") && e.contains("did you mean `b`"),
         "{e}"
     );
 }

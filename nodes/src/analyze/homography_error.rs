@@ -4,7 +4,9 @@
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
-use ocellus_engine::value::{Matrix, Metrics, Value};
+use ocellus_engine::value::{Metrics, Value};
+
+use super::match_accuracy::homography_of;
 
 /// Largest error reported, px: a point the estimate sends to (or beyond) infinity counts as this.
 pub const MAX_ERROR_PX: f64 = 1e6;
@@ -105,7 +107,7 @@ Example:
 impl Operator for HomographyError {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
         let h = match inputs.require("H")? {
-            Value::Matrix(m) => homography_of(m)?,
+            Value::Matrix(m) => homography_of(m, "H")?,
             other => {
                 return Err(OpError::input(
                     "H",
@@ -141,21 +143,6 @@ impl Operator for HomographyError {
         metrics.insert("grid_rms_px".into(), e.grid_rms_px);
         Ok(Outputs::new().with("metrics", Value::metrics(metrics)))
     }
-}
-
-fn homography_of(m: &Matrix) -> Result<[f64; 9], OpError> {
-    if m.rows != 3 || m.cols != 3 || m.data.len() != 9 {
-        return Err(OpError::input(
-            "H",
-            format!("must be 3×3, got {}×{}", m.rows, m.cols),
-        ));
-    }
-    if m.data.iter().any(|v| !v.is_finite()) {
-        return Err(OpError::input("H", "holds a non-finite entry"));
-    }
-    let mut h = [0.0; 9];
-    h.copy_from_slice(&m.data);
-    Ok(h)
 }
 
 fn determinant(h: &[f64; 9]) -> f64 {

@@ -90,7 +90,7 @@ impl Operator for MatchAccuracy {
         let kr = keypoints(inputs, "keypoints_right")?;
         let m = matches(inputs, "matches")?;
         let h = match inputs.require("homography")? {
-            Value::Matrix(h) => homography_of(h)?,
+            Value::Matrix(h) => homography_of(h, "homography")?,
             other => {
                 return Err(OpError::input(
                     "homography",
@@ -103,15 +103,16 @@ impl Operator for MatchAccuracy {
     }
 }
 
-fn homography_of(m: &Matrix) -> Result<[f64; 9], OpError> {
+/// A finite 3×3 homography from a Matrix input; errors name `port`.
+pub(crate) fn homography_of(m: &Matrix, port: &str) -> Result<[f64; 9], OpError> {
     if m.rows != 3 || m.cols != 3 || m.data.len() != 9 {
         return Err(OpError::input(
-            "homography",
+            port,
             format!("must be 3×3, got {}×{}", m.rows, m.cols),
         ));
     }
     if m.data.iter().any(|v| !v.is_finite()) {
-        return Err(OpError::input("homography", "holds a non-finite entry"));
+        return Err(OpError::input(port, "holds a non-finite entry"));
     }
     let mut h = [0.0; 9];
     h.copy_from_slice(&m.data);
@@ -250,6 +251,6 @@ mod tests {
             .is_err()
         );
         let bad = Matrix::new(2, 2, vec![0.0; 4]).unwrap();
-        assert!(homography_of(&bad).is_err());
+        assert!(homography_of(&bad, "homography").is_err());
     }
 }
