@@ -87,7 +87,7 @@ impl Profile {
 }
 
 /// Median of sorted samples (mean of the middle two for an even count); 0 when empty.
-fn median(sorted: &[f64]) -> f64 {
+pub(crate) fn median(sorted: &[f64]) -> f64 {
     match sorted.len() {
         0 => 0.0,
         n if n % 2 == 1 => sorted[n / 2],

@@ -275,13 +275,13 @@ pub fn pareto_front(points: &[(f64, f64)], goal: Goal) -> Vec<usize> {
     front
 }
 
+/// Median of unsorted samples (NaN when there are none).
 fn median(mut samples: Vec<f64>) -> f64 {
-    samples.sort_by(f64::total_cmp);
-    match samples.len() {
-        0 => f64::NAN,
-        n if n % 2 == 1 => samples[n / 2],
-        n => (samples[n / 2 - 1] + samples[n / 2]) / 2.0,
+    if samples.is_empty() {
+        return f64::NAN;
     }
+    samples.sort_by(f64::total_cmp);
+    crate::profile::median(&samples)
 }
 
 /// Runs `ocellus sweep`.

@@ -124,7 +124,10 @@ fn bad_sweeps_are_clear_errors() {
     let d = dir.to_str().unwrap();
     let cases: [(&[&str], &str); 5] = [
         (&["--vary", "ransac.max_trials"], "missing `=`"),
-        (&["--vary", "ransac.max_trails=1,2"], "max_trails"),
+        (
+            &["--vary", "ransac.max_trails=1,2"],
+            "did you mean `max_trials`",
+        ),
         (
             &[
                 "--vary",
@@ -143,7 +146,10 @@ fn bad_sweeps_are_clear_errors() {
             ],
             "unknown goal",
         ),
-        (&["--vary", "ransac.max_trials=1,-2"], "max_trials"),
+        (
+            &["--vary", "ransac.max_trials=1,-2"],
+            "`max_trials` must be ≥ 1, got -2",
+        ),
     ];
     for (extra, expected) in cases {
         let mut args = vec!["sweep", "graphs/homography.ron", "--out", d];

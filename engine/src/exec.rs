@@ -397,6 +397,13 @@ fn plan(
         }
     }
 
+    // A fresh node shared onto an identical earlier one makes that one fresh too.
+    for i in 0..n {
+        if fresh[i] {
+            fresh[canonical[i]] = true;
+        }
+    }
+
     // Walk demand again, stopping at cached results.
     let mut run = vec![false; n];
     let mut loaded: HashMap<usize, Arc<[Value]>> = HashMap::new();

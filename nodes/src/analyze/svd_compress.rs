@@ -194,18 +194,23 @@ pub struct LowRank {
 /// matrix `plane` (finite samples, both sides ≥ 1; `rank` is capped at min(width, height)).
 pub fn low_rank(plane: &[f64], width: usize, height: usize, rank: usize) -> LowRank {
     let a = DMatrix::from_row_slice(height, width, plane);
-    let svd = a.svd(true, true);
-    let mut order: Vec<usize> = (0..svd.singular_values.len()).collect();
-    order.sort_by(|&i, &j| {
-        svd.singular_values[j]
-            .total_cmp(&svd.singular_values[i])
-            .then(i.cmp(&j))
-    });
-    let singular_values: Vec<f64> = order.iter().map(|&i| svd.singular_values[i]).collect();
+    let frobenius2 = a.norm_squared();
+    let svd = a.clone().svd(true, true);
+    // nalgebra 0.35's SVD with singular vectors returns wrong values for some exactly
+    // low-rank inputs (dimforge/nalgebra#1172), and images often are: check Σσ² = ‖A‖²_F and
+    // fall back to the Gram route when it fails.
+    let sum2: f64 = svd.singular_values.iter().map(|s| s * s).sum();
+    let trusted = (sum2 - frobenius2).abs() <= 1e-9 * frobenius2.max(f64::MIN_POSITIVE)
+        && svd.u.is_some()
+        && svd.v_t.is_some();
+    if !trusted {
+        return low_rank_by_gram(&a, rank);
+    }
+    // nalgebra sorts the singular values in decreasing order.
+    let singular_values: Vec<f64> = svd.singular_values.iter().copied().collect();
     let mut approximation = vec![0.0; width * height];
     if let (Some(u), Some(v_t)) = (&svd.u, &svd.v_t) {
-        for &i in order.iter().take(rank) {
-            let s = svd.singular_values[i];
+        for (i, &s) in singular_values.iter().enumerate().take(rank) {
             for y in 0..height {
                 let us = u[(y, i)] * s;
                 let row = &mut approximation[y * width..(y + 1) * width];
@@ -213,6 +218,38 @@ pub fn low_rank(plane: &[f64], width: usize, height: usize, rank: usize) -> LowR
                     *out += us * v_t[(i, x)];
                 }
             }
+        }
+    }
+    LowRank {
+        singular_values,
+        approximation,
+    }
+}
+
+/// [`low_rank`] from the eigenvectors of AᵀA: A·V_k·V_kᵀ is the best rank-k approximation and
+/// the singular values are √λ (the Gram matrix squares the condition number, which only costs
+/// accuracy in singular values below ≈ 1e-8 of the largest).
+fn low_rank_by_gram(a: &DMatrix<f64>, rank: usize) -> LowRank {
+    let (height, width) = a.shape();
+    let eig = nalgebra::SymmetricEigen::new(a.transpose() * a);
+    let mut order: Vec<usize> = (0..eig.eigenvalues.len()).collect();
+    order.sort_by(|&i, &j| {
+        eig.eigenvalues[j]
+            .total_cmp(&eig.eigenvalues[i])
+            .then(i.cmp(&j))
+    });
+    order.truncate(width.min(height));
+    let singular_values: Vec<f64> = order
+        .iter()
+        .map(|&i| eig.eigenvalues[i].max(0.0).sqrt())
+        .collect();
+    let k = rank.min(order.len());
+    let v_k = DMatrix::from_fn(width, k, |r, c| eig.eigenvectors[(r, order[c])]);
+    let approx = a * &v_k * v_k.transpose();
+    let mut approximation = vec![0.0; width * height];
+    for y in 0..height {
+        for x in 0..width {
+            approximation[y * width + x] = approx[(y, x)];
         }
     }
     LowRank {
@@ -234,6 +271,28 @@ mod tests {
             .map(|(x, y)| (x - y) * (x - y))
             .sum::<f64>()
             .sqrt()
+    }
+
+    /// The fallback for nalgebra's low-rank SVD bug gives the same singular values and
+    /// approximations as a trusted SVD.
+    #[test]
+    fn gram_route_agrees_with_the_svd() {
+        let (w, h) = (7, 5);
+        let plane: Vec<f64> = (0..w * h)
+            .map(|i| ((i * 37 % 11) as f64) - 3.0 + (i as f64 * 0.1).sin())
+            .collect();
+        let a = DMatrix::from_row_slice(h, w, &plane);
+        for rank in [1, 3, 5] {
+            let svd = low_rank(&plane, w, h, rank);
+            let gram = low_rank_by_gram(&a, rank);
+            assert_eq!(svd.singular_values.len(), gram.singular_values.len());
+            for (x, y) in svd.singular_values.iter().zip(&gram.singular_values) {
+                assert!((x - y).abs() < 1e-9 * svd.singular_values[0], "{x} vs {y}");
+            }
+            for (x, y) in svd.approximation.iter().zip(&gram.approximation) {
+                assert!((x - y).abs() < 1e-8, "rank {rank}: {x} vs {y}");
+            }
+        }
     }
 
     #[test]

@@ -1020,11 +1020,14 @@ fn referenced_files(src: &str, path: &Path) -> Vec<PathBuf> {
     if let Some(files) = known.lock().ok().and_then(|k| k.get(&key).cloned()) {
         return files;
     }
-    let files = parse_scene(src, path).map(|l| l.files).unwrap_or_default();
+    // A scene that does not parse (yet: a file it names may be missing) is not remembered.
+    let Ok(loaded) = parse_scene(src, path) else {
+        return Vec::new();
+    };
     if let Ok(mut k) = known.lock() {
-        k.insert(key, files.clone());
+        k.insert(key, loaded.files.clone());
     }
-    files
+    loaded.files
 }
 
 /// Reads and parses a scene file.

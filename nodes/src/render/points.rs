@@ -284,7 +284,7 @@ pub fn path_camera(rec: &Reconstruction, t: f64) -> Result<([f64; 9], [f64; 3]),
     if images.is_empty() {
         return Err("the reconstruction has no registered images".into());
     }
-    let poses: Vec<(Quat, [f64; 3])> = images
+    let poses: Vec<([f64; 4], [f64; 3])> = images
         .iter()
         .map(|i| {
             let pose = &i.camera_from_world;
@@ -292,12 +292,12 @@ pub fn path_camera(rec: &Reconstruction, t: f64) -> Result<([f64; 9], [f64; 3]),
             let tr = pose.translation;
             // C = −Rᵀ t.
             let c = [0, 1, 2].map(|k| -(r[k] * tr[0] + r[3 + k] * tr[1] + r[6 + k] * tr[2]));
-            (Quat(pose.rotation), c)
+            (pose.rotation, c)
         })
         .collect();
     if poses
         .iter()
-        .any(|(q, c)| q.0.iter().chain(c).any(|v| !v.is_finite()))
+        .any(|(q, c)| q.iter().chain(c).any(|v| !v.is_finite()))
     {
         return Err("a registered image has a non-finite pose".into());
     }
@@ -319,37 +319,11 @@ pub fn path_camera(rec: &Reconstruction, t: f64) -> Result<([f64; 9], [f64; 3]),
     });
     let q0 = poses[k].0;
     let q1 = poses[(k + 1).min(poses.len() - 1)].0;
-    let q = q0.slerp(q1, f);
     let pose = Pose {
-        rotation: q.0,
+        rotation: ocellus_engine::curves::slerp(q0, q1, f),
         translation: [0.0; 3],
     };
     Ok((pose.rotation_matrix(), centre))
-}
-
-/// A unit quaternion [w, x, y, z].
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct Quat([f64; 4]);
-
-impl Quat {
-    fn slerp(self, other: Quat, f: f64) -> Quat {
-        let mut b = other.0;
-        let mut d: f64 = self.0.iter().zip(&b).map(|(x, y)| x * y).sum();
-        if d < 0.0 {
-            b = b.map(|v| -v);
-            d = -d;
-        }
-        let (wa, wb) = if d > 0.9995 {
-            (1.0 - f, f)
-        } else {
-            let theta = d.clamp(-1.0, 1.0).acos();
-            let s = theta.sin();
-            (((1.0 - f) * theta).sin() / s, (f * theta).sin() / s)
-        };
-        let q = [0, 1, 2, 3].map(|i| wa * self.0[i] + wb * b[i]);
-        let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-        Quat(q.map(|v| v / n))
-    }
 }
 
 /// A pinhole camera for [`render_points`].

@@ -205,7 +205,17 @@ pub fn quilt(source: &Texture, config: &QuiltConfig) -> Result<Quilt, String> {
             let (px, py) = (bx * step, by * step);
             let left = bx > 0 && ov > 0;
             let top = by > 0 && ov > 0;
-            let in_overlap = |x: usize, y: usize| (left && x < ov) || (top && y < ov);
+            // The overlap, row by row: whole rows in the top strip, the first `ov` columns
+            // below it (only the left strip).
+            let row_span = |y: usize| {
+                if top && y < ov {
+                    b
+                } else if left {
+                    ov
+                } else {
+                    0
+                }
+            };
             let errors: Vec<f64> = (0..sh)
                 .into_par_iter()
                 .flat_map_iter(|sy| {
@@ -216,13 +226,11 @@ pub fn quilt(source: &Texture, config: &QuiltConfig) -> Result<Quilt, String> {
                         }
                         let mut ssd = 0.0f64;
                         for y in 0..b {
-                            for x in 0..b {
-                                if in_overlap(x, y) {
-                                    ssd += pixel_ssd(
-                                        canvas.pixel(px + x, py + y),
-                                        source.pixel(sx + x, sy + y),
-                                    );
-                                }
+                            for x in 0..row_span(y) {
+                                ssd += pixel_ssd(
+                                    canvas.pixel(px + x, py + y),
+                                    source.pixel(sx + x, sy + y),
+                                );
                             }
                         }
                         ssd
@@ -243,41 +251,40 @@ pub fn quilt(source: &Texture, config: &QuiltConfig) -> Result<Quilt, String> {
             let diff = |x: usize, y: usize| {
                 pixel_ssd(canvas.pixel(px + x, py + y), source.pixel(sx + x, sy + y))
             };
+            // The cut through an overlap strip of `b` rows of `ov` samples; `at(row, k)` is the
+            // block pixel of sample k of that row (the top strip is read transposed).
+            let cut = |at: &dyn Fn(usize, usize) -> (usize, usize)| -> Vec<usize> {
+                if !config.boundary_cut {
+                    return vec![0; b];
+                }
+                let costs: Vec<f64> = (0..b)
+                    .flat_map(|row| (0..ov).map(move |k| (row, k)))
+                    .map(|(row, k)| {
+                        let (x, y) = at(row, k);
+                        diff(x, y)
+                    })
+                    .collect();
+                min_cut_path(&costs, b, ov).0
+            };
             let mut take_new = vec![true; b * b];
             let mut seam = Vec::new();
             if left {
-                let costs: Vec<f64> = (0..b)
-                    .flat_map(|y| (0..ov).map(move |x| (x, y)))
-                    .map(|(x, y)| diff(x, y))
-                    .collect();
-                let path = if config.boundary_cut {
-                    min_cut_path(&costs, b, ov).0
-                } else {
-                    vec![0; b]
-                };
-                for (y, &cut) in path.iter().enumerate() {
+                for (y, cut) in cut(&|y, x| (x, y)).into_iter().enumerate() {
                     take_new[y * b..y * b + cut].fill(false);
                     seam.push((cut, y));
                 }
             }
             if top {
-                // The top strip transposed: rows are block columns.
-                let costs: Vec<f64> = (0..b)
-                    .flat_map(|x| (0..ov).map(move |y| (x, y)))
-                    .map(|(x, y)| diff(x, y))
-                    .collect();
-                let path = if config.boundary_cut {
-                    min_cut_path(&costs, b, ov).0
-                } else {
-                    vec![0; b]
-                };
-                for (x, &cut) in path.iter().enumerate() {
+                for (x, cut) in cut(&|x, y| (x, y)).into_iter().enumerate() {
                     for y in 0..cut {
                         take_new[y * b + x] = false;
                     }
                     seam.push((x, cut));
                 }
             }
+            // A pixel on both cuts of an L-shaped overlap counts once.
+            seam.sort_unstable_by_key(|&(x, y)| (y, x));
+            seam.dedup();
             for &(x, y) in &seam {
                 if take_new[y * b + x] {
                     seam_sum += diff(x, y) / c as f64;
