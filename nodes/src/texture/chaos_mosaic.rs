@@ -98,8 +98,9 @@ Outputs `image` and `metrics`: `blocks`; `distinct_positions` visited by the map
 `period_rms` = RMS difference between the output and itself shifted by one source size (0 for
 the plain tiling: how much of the tiling's period is broken), image units; `patch_match_rms`
 = RMS distance of the output's 7×7 patches (at most 1024) to their nearest source patch.
-Cost: iterations × block area, independent of the source size (that is the method's
-point). Deterministic for a seed.
+Cost: the synthesis is iterations × block area, independent of the source size (that is the
+method's point); the `patch_match_rms` metric compares output patches with every source
+patch, so it grows with the source's area. Deterministic for a seed.
 
 Example:
     "mosaic": (op: "texture.chaos_mosaic", inputs: { "source": "tex.image" },
