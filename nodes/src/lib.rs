@@ -176,6 +176,8 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<geometry::servo::VisualServoStep>()?;
     registry.register::<sfm::stereo::Stereo>()?;
     registry.register::<sfm::depth::DepthToPoints>()?;
+    registry.register::<sfm::align::Align>()?;
+    registry.register::<sfm::dense::DenseDepth>()?;
     registry.register::<analyze::disparity_error::DisparityError>()?;
     registry.register::<mesh::pointcloud::VoxelDownsample>()?;
     registry.register::<mesh::pointcloud::RemoveOutliers>()?;

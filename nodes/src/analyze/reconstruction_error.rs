@@ -14,7 +14,7 @@ use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Metrics, Pose, Reconstruction, Value};
 
 use crate::geometry::pose_util::rotation_angle_deg;
-use crate::geometry::transforms::{Pair3, umeyama};
+use crate::geometry::transforms::{Pair3, Similarity3, umeyama};
 use crate::optimize::camera_model::project;
 
 params! {
@@ -102,7 +102,7 @@ impl ReconstructionReport {
 }
 
 /// The rotation (row-major → matrix) and centre `−Rᵀt` of a camera_from_world pose.
-fn rotation_and_centre(pose: &Pose) -> (Matrix3<f64>, Vector3<f64>) {
+pub(crate) fn rotation_and_centre(pose: &Pose) -> (Matrix3<f64>, Vector3<f64>) {
     let r = Matrix3::from_row_slice(&pose.rotation_matrix());
     let c = -(r.transpose() * Vector3::from(pose.translation));
     (r, c)
@@ -114,7 +114,7 @@ fn base_name(name: &str) -> &str {
 }
 
 /// For each reconstruction image (in its order), the view it shows, or an error.
-fn match_views(
+pub(crate) fn match_views(
     reconstruction: &Reconstruction,
     views: usize,
     names: Option<&[String]>,
@@ -178,6 +178,38 @@ fn match_views(
     Ok(view_of)
 }
 
+/// The similarity `world_true = s·Q·world_est + c` fitted (Umeyama) to the registered camera
+/// centres, and the view of each reconstruction image (see [`reconstruction_error`] for the
+/// matching rules). At least 3 non-collinear centres are needed.
+pub(crate) fn similarity_to_truth(
+    reconstruction: &Reconstruction,
+    truth: &[Pose],
+    names: Option<&[String]>,
+) -> Result<(Similarity3, Vec<usize>), String> {
+    let view_of = match_views(reconstruction, truth.len(), names)?;
+    let registered = view_of.len();
+    if registered < 3 {
+        return Err(format!(
+            "{registered} registered views: the alignment needs at least 3"
+        ));
+    }
+    let pairs: Vec<Pair3> = reconstruction
+        .images
+        .iter()
+        .zip(&view_of)
+        .map(|(image, &k)| {
+            let (_, c_est) = rotation_and_centre(&image.camera_from_world);
+            let (_, c_true) = rotation_and_centre(&truth[k]);
+            [c_est.into(), c_true.into()]
+        })
+        .collect();
+    let sim = umeyama(&pairs, true).ok_or_else(|| {
+        "the registered camera centres are collinear or coincide: the alignment is undetermined"
+            .to_string()
+    })?;
+    Ok((sim, view_of))
+}
+
 /// Compares `reconstruction` with the true camera_from_world `truth` of every view.
 ///
 /// Images are matched to views by name when `names` (one per view) is given — exactly, or else
@@ -193,28 +225,14 @@ pub fn reconstruction_error(
     truth: &[Pose],
     names: Option<&[String]>,
 ) -> Result<ReconstructionReport, String> {
-    let view_of = match_views(reconstruction, truth.len(), names)?;
+    let (sim, view_of) = similarity_to_truth(reconstruction, truth, names)?;
     let registered = view_of.len();
-    if registered < 3 {
-        return Err(format!(
-            "{registered} registered views: the alignment needs at least 3"
-        ));
-    }
     let estimated: Vec<_> = reconstruction
         .images
         .iter()
         .map(|i| rotation_and_centre(&i.camera_from_world))
         .collect();
     let true_poses: Vec<_> = truth.iter().map(rotation_and_centre).collect();
-    let pairs: Vec<Pair3> = estimated
-        .iter()
-        .zip(&view_of)
-        .map(|((_, c), &k)| [(*c).into(), true_poses[k].1.into()])
-        .collect();
-    let sim = umeyama(&pairs, true).ok_or_else(|| {
-        "the registered camera centres are collinear or coincide: the alignment is undetermined"
-            .to_string()
-    })?;
     let mut per_view: Vec<(usize, f64, f64)> = estimated
         .iter()
         .zip(&view_of)
@@ -389,6 +407,39 @@ fn list<'a>(inputs: &Inputs<'a>, port: &str) -> Result<Option<&'a [Value]>, OpEr
     }
 }
 
+/// The `poses` (required) and `names` (optional) inputs of the operators that compare a
+/// reconstruction with the truth.
+pub(crate) fn truth_inputs(
+    inputs: &Inputs<'_>,
+) -> Result<(Vec<Pose>, Option<Vec<String>>), OpError> {
+    let poses = list(inputs, "poses")?
+        .ok_or_else(|| OpError::input("poses", "not connected"))?
+        .iter()
+        .map(|v| match v {
+            Value::Pose(p) => Ok(*p),
+            other => Err(OpError::input(
+                "poses",
+                format!("expected Pose elements, got {}", other.port_type()),
+            )),
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let names = list(inputs, "names")?
+        .map(|items| {
+            items
+                .iter()
+                .map(|v| match v {
+                    Value::Text(t) => Ok(t.to_string()),
+                    other => Err(OpError::input(
+                        "names",
+                        format!("expected Text elements, got {}", other.port_type()),
+                    )),
+                })
+                .collect::<Result<Vec<_>, _>>()
+        })
+        .transpose()?;
+    Ok((poses, names))
+}
+
 impl Operator for ReconstructionError {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
         let reconstruction = match inputs.require("reconstruction")? {
@@ -400,31 +451,7 @@ impl Operator for ReconstructionError {
                 ));
             }
         };
-        let poses = list(inputs, "poses")?
-            .ok_or_else(|| OpError::input("poses", "not connected"))?
-            .iter()
-            .map(|v| match v {
-                Value::Pose(p) => Ok(*p),
-                other => Err(OpError::input(
-                    "poses",
-                    format!("expected Pose elements, got {}", other.port_type()),
-                )),
-            })
-            .collect::<Result<Vec<_>, _>>()?;
-        let names = list(inputs, "names")?
-            .map(|items| {
-                items
-                    .iter()
-                    .map(|v| match v {
-                        Value::Text(t) => Ok(t.to_string()),
-                        other => Err(OpError::input(
-                            "names",
-                            format!("expected Text elements, got {}", other.port_type()),
-                        )),
-                    })
-                    .collect::<Result<Vec<_>, _>>()
-            })
-            .transpose()?;
+        let (poses, names) = truth_inputs(inputs)?;
         let report = reconstruction_error(reconstruction, &poses, names.as_deref())
             .map_err(OpError::failed)?;
         Ok(Outputs::new().with("metrics", Value::metrics(report.metrics())))

@@ -342,19 +342,23 @@ pub struct OneSided {
     pub max: f64,
     /// Number of points.
     pub points: usize,
+    /// Points within the threshold distance (all of them without a threshold).
+    pub within: usize,
 }
 
-/// Distances from `points` to the surface of `tree` (see the module documentation).
-pub fn one_sided(points: &[[f64; 3]], tree: &TriangleTree) -> OneSided {
+/// Distances from `points` to the surface of `tree` (see the module documentation), counting
+/// the points within `threshold` (∞: all).
+pub fn one_sided(points: &[[f64; 3]], tree: &TriangleTree, threshold: f64) -> OneSided {
     let d2 = par_map(points.len(), |i| {
         tree.closest(points[i]).map_or(0.0, |c| c.dist2)
     });
-    let (mut sum, mut sum2, mut max) = (0.0, 0.0, 0.0f64);
+    let (mut sum, mut sum2, mut max, mut within) = (0.0, 0.0, 0.0f64, 0usize);
     for &d in &d2 {
         let s = d.sqrt();
         sum += s;
         sum2 += d;
         max = max.max(s);
+        within += usize::from(s <= threshold);
     }
     let n = points.len().max(1) as f64;
     OneSided {
@@ -362,16 +366,19 @@ pub fn one_sided(points: &[[f64; 3]], tree: &TriangleTree) -> OneSided {
         rms: (sum2 / n).sqrt(),
         max,
         points: points.len(),
+        within,
     }
 }
 
 /// Both directions between two meshes (positions, triangles), each from its vertices plus
-/// `samples` surface points drawn from `seed` (B uses `seed + 1`).
+/// `samples` surface points drawn from `seed` (B uses `seed + 1`); each side counts its
+/// points within `threshold` (∞: all) of the other surface.
 pub fn mesh_distance(
     a: (&[[f64; 3]], &[[u32; 3]]),
     b: (&[[f64; 3]], &[[u32; 3]]),
     samples: usize,
     seed: u64,
+    threshold: f64,
 ) -> (OneSided, OneSided) {
     let points = |m: (&[[f64; 3]], &[[u32; 3]]), seed: u64| {
         let mut used = vec![false; m.0.len()];
@@ -392,8 +399,8 @@ pub fn mesh_distance(
     let tree_a = TriangleTree::new(a.0.to_vec(), a.1.to_vec());
     let tree_b = TriangleTree::new(b.0.to_vec(), b.1.to_vec());
     (
-        one_sided(&points(a, seed), &tree_b),
-        one_sided(&points(b, seed.wrapping_add(1)), &tree_a),
+        one_sided(&points(a, seed), &tree_b, threshold),
+        one_sided(&points(b, seed.wrapping_add(1)), &tree_a, threshold),
     )
 }
 
@@ -507,6 +514,9 @@ params! {
         samples: u32 = 100_000 => [min = 0, max = 100_000_000],
         /// Seed of the sampling (mesh b uses seed + 1). Default 0.
         seed: u64 = 0,
+        /// Distance within which a point counts as matched, scene units, for `precision`,
+        /// `recall` and `f_score`; none (the default) leaves them out.
+        threshold: Option<f64> = None => [above = 0.0, unit = "scene units"],
     }
 }
 
@@ -530,7 +540,11 @@ Detection", §5.1.5).
 
 Metrics: `mean_a_to_b`, `rms_a_to_b`, `max_a_to_b` and the same from b to a; `chamfer` =
 mean_a_to_b + mean_b_to_a; `hausdorff` = the larger max, a lower bound of the true Hausdorff
-distance that tightens with `samples`. Any triangle soup is accepted (no manifold needed);
+distance that tightens with `samples`. With a `threshold` τ, the multi-view stereo benchmark
+scores of Tanks and Temples (Knapitsch et al., TOG 2017) and ETH3D (Schöps et al., CVPR 2017)
+with a as the reconstruction and b as the ground truth: `precision` = the fraction of a's
+points within τ of b (accuracy), `recall` = the fraction of b's points within τ of a
+(completeness), `f_score` = their harmonic mean (0 when both are 0). Any triangle soup is accepted (no manifold needed);
 scene units.
 
 Example:
@@ -573,6 +587,7 @@ impl Operator for Distance {
             (&pb, &mb.triangles),
             self.params.samples as usize,
             self.params.seed,
+            self.params.threshold.unwrap_or(f64::INFINITY),
         );
         let mut m = Metrics::new();
         for (name, d) in [("a_to_b", ab), ("b_to_a", ba)] {
@@ -582,6 +597,18 @@ impl Operator for Distance {
         }
         m.insert("chamfer".into(), ab.mean + ba.mean);
         m.insert("hausdorff".into(), ab.max.max(ba.max));
+        if self.params.threshold.is_some() {
+            let precision = ab.within as f64 / ab.points.max(1) as f64;
+            let recall = ba.within as f64 / ba.points.max(1) as f64;
+            let f_score = if precision + recall > 0.0 {
+                2.0 * precision * recall / (precision + recall)
+            } else {
+                0.0
+            };
+            m.insert("precision".into(), precision);
+            m.insert("recall".into(), recall);
+            m.insert("f_score".into(), f_score);
+        }
         Ok(Outputs::new().with("metrics", Value::metrics(m)))
     }
 }
@@ -679,21 +706,29 @@ mod tests {
         // one, the corners are farthest, 0.1·√3.
         let (p, t) = cube_triangles();
         let outer: Vec<[f64; 3]> = p.iter().map(|v| v.map(|x| 1.1 * x)).collect();
-        let (ab, ba) = mesh_distance((&p, &t), (&outer, &t), 5000, 7);
+        let (ab, ba) = mesh_distance((&p, &t), (&outer, &t), 5000, 7, f64::INFINITY);
         assert!((ab.mean - 0.1).abs() < 1e-12 && (ab.max - 0.1).abs() < 1e-12);
         assert!((ab.rms - 0.1).abs() < 1e-12);
         assert!((ba.max - 0.1 * 3f64.sqrt()).abs() < 1e-12);
         assert!(ba.mean > 0.1 && ba.mean < ba.max);
         assert_eq!((ab.points, ba.points), (5008, 5008));
+        assert_eq!((ab.within, ba.within), (5008, 5008));
+        // Within 0.1 (+ rounding): all of the inner cube; of the outer one, the points over
+        // an inner face, a (1/1.1)² = 0.826 share of each face's area.
+        let (ab, ba) = mesh_distance((&p, &t), (&outer, &t), 5000, 7, 0.1 + 1e-9);
+        assert_eq!(ab.within, ab.points);
+        let share = ba.within as f64 / ba.points as f64;
+        assert!((share - 1.0 / 1.21).abs() < 0.02, "{share}");
         // A mesh against itself: zero up to rounding.
-        let (same, _) = mesh_distance((&p, &t), (&p, &t), 1000, 1);
+        let (same, _) = mesh_distance((&p, &t), (&p, &t), 1000, 1, f64::INFINITY);
         assert!(same.max < 1e-12);
         // A grid and the same grid lifted by 0.5: 0.5 everywhere.
         let (g, gt) = grid(4, 4);
         let lifted: Vec<[f64; 3]> = g.iter().map(|v| [v[0], v[1], 0.5]).collect();
-        let (ab, ba) = mesh_distance((&g, &gt), (&lifted, &gt), 1000, 2);
+        let (ab, ba) = mesh_distance((&g, &gt), (&lifted, &gt), 1000, 2, 0.05);
         for d in [ab, ba] {
             assert!((d.mean - 0.5).abs() < 1e-12 && (d.max - 0.5).abs() < 1e-12);
+            assert_eq!(d.within, 0);
         }
     }
 
@@ -708,7 +743,7 @@ mod tests {
                 .num_threads(threads)
                 .build()
                 .unwrap()
-                .install(|| mesh_distance((&pa, &ta), (&pb, &tb), 20_000, 5))
+                .install(|| mesh_distance((&pa, &ta), (&pb, &tb), 20_000, 5, f64::INFINITY))
         };
         assert_eq!(run(1), run(3));
     }

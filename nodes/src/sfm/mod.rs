@@ -1,6 +1,8 @@
 //! The `sfm` family: structure from motion (pair matching, tracks, incremental reconstruction)
 //! and dense stereo.
 
+pub mod align;
+pub mod dense;
 pub mod depth;
 pub mod incremental;
 pub mod pairs;
