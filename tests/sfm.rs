@@ -72,6 +72,21 @@ fn reconstruction_matches_the_rendering_cameras() {
         m("registered_fraction")
     );
     assert!(m("points") > 1000.0, "{}", m("points"));
+
+    // Dense: the fused mesh against the true surface (the same fusion of the renderer's exact
+    // depth maps), within 5 cm in a room 8 m across. Measured: precision 0.956, recall 0.636,
+    // F-score 0.764, mean distance to the truth 1.7 cm; 61 % of the pixels keep a depth.
+    let e = |name: &str| metric(&out, "mesh_error", name);
+    assert!(e("precision") > 0.93, "{}", e("precision"));
+    assert!(e("recall") > 0.58, "{}", e("recall"));
+    assert!(e("f_score") > 0.72, "{}", e("f_score"));
+    assert!(e("mean_a_to_b") < 0.03, "{}", e("mean_a_to_b"));
+    let d = |name: &str| metric(&out, "dense", name);
+    assert_eq!(d("views"), 12.0);
+    assert!(d("valid_fraction") > 0.5, "{}", d("valid_fraction"));
+    // The rendering of the mesh resembles the rendering of the truth from the same viewpoint.
+    let v = |name: &str| metric(&out, "view_error", name);
+    assert!(v("ssim") > 0.4, "{}", v("ssim"));
 }
 
 #[test]

@@ -49,12 +49,18 @@ use nalgebra::{Matrix3, Vector3};
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
-use ocellus_engine::value::{Camera, Image, Intrinsics, Metrics, Reconstruction, Value};
+use ocellus_engine::value::{
+    Camera, Depth, Image, Intrinsics, Metrics, PixelData, PointCloud, Reconstruction, Value,
+};
 use rayon::prelude::*;
 
 use crate::analyze::reconstruction_error::match_views;
+use crate::filter::convert::convert_type;
 use crate::filter::pyramid::pyr_down;
 use crate::geometry::camera::Lens;
+use crate::geometry::ransac::{RobustOptions, estimate};
+use crate::geometry::shapes::{Plane as ScenePlane, PlaneEstimator};
+use crate::sfm::depth::{DepthKind, DepthOptions, depth_to_points};
 use crate::sfm::pairs::list_items;
 use crate::video::gray::{Plane, gray_f32};
 
@@ -90,6 +96,9 @@ pub struct DenseOptions {
     pub max_reprojection_px: f64,
     /// Largest relative depth difference of an agreeing view.
     pub max_depth_rel: f64,
+    /// Dominant scene planes (sequential RANSAC on the sparse points) whose orientation is
+    /// swept besides the fronto-parallel one.
+    pub dominant_planes: usize,
 }
 
 impl Default for DenseOptions {
@@ -106,6 +115,7 @@ impl Default for DenseOptions {
             min_consistent: 2,
             max_reprojection_px: 1.0,
             max_depth_rel: 0.01,
+            dominant_planes: 1,
         }
     }
 }
@@ -210,6 +220,8 @@ pub struct ViewDepth {
     pub sources: Vec<usize>,
     /// Swept depth range `(near, far)`; `None` when the view observes too few sparse points.
     pub range: Option<(f64, f64)>,
+    /// Plane orientations swept (fronto-parallel and the dominant planes').
+    pub plane_families: usize,
     /// Pixels with a depth before the consistency check.
     pub matched: usize,
     /// Pixels with a depth after it.
@@ -234,21 +246,120 @@ fn quantile(values: &mut [f64], q: f64) -> f64 {
     values[i.min(values.len() - 1)]
 }
 
-/// The sweep range of a view from the depths of its sparse points.
-fn depth_range(view: &DenseView, points: &[[f64; 3]], margin: f64) -> Option<(f64, f64)> {
-    let mut z: Vec<f64> = view
+/// The sweep range of planes `n·X = d` (camera frame, `n` unit) from the sparse points a view
+/// observes: the 2nd–98th percentiles of their positive `d`, widened by `margin`. With
+/// `n = (0, 0, 1)` this is the depth range.
+fn plane_range(
+    view: &DenseView,
+    points: &[[f64; 3]],
+    normal: &Vector3<f64>,
+    margin: f64,
+) -> Option<(f64, f64)> {
+    let mut d: Vec<f64> = view
         .observed
         .iter()
         .filter_map(|&i| points.get(i))
-        .map(|p| (view.rotation * Vector3::from(*p) + view.translation).z)
-        .filter(|z| z.is_finite() && *z > 0.0)
+        .map(|p| normal.dot(&(view.rotation * Vector3::from(*p) + view.translation)))
+        .filter(|d| d.is_finite() && *d > 0.0)
         .collect();
-    if z.len() < 3 {
+    if d.len() < 3 {
         return None;
     }
-    let near = quantile(&mut z, 0.02) * (1.0 - margin);
-    let far = quantile(&mut z, 0.98) * (1.0 + margin);
+    let near = quantile(&mut d, 0.02) * (1.0 - margin);
+    let far = quantile(&mut d, 0.98) * (1.0 + margin);
     (near > 0.0 && far > near).then_some((near, far))
+}
+
+/// Up to `count` dominant planes of the sparse points (world frame), by sequential RANSAC: each plane holds at least 10 % of the points (and 15) within 1 % of the
+/// points' median distance from their centroid, and its inliers are removed before the next.
+fn dominant_planes(points: &[[f64; 3]], count: usize) -> Vec<ScenePlane> {
+    let finite: Vec<[f64; 3]> = points
+        .iter()
+        .copied()
+        .filter(|p| p.iter().all(|v| v.is_finite()))
+        .collect();
+    if count == 0 || finite.len() < 15 {
+        return Vec::new();
+    }
+    let n = finite.len() as f64;
+    let centroid = finite
+        .iter()
+        .fold(Vector3::zeros(), |a, p| a + Vector3::from(*p))
+        / n;
+    let mut spread: Vec<f64> = finite
+        .iter()
+        .map(|p| (Vector3::from(*p) - centroid).norm())
+        .collect();
+    let scale = quantile(&mut spread, 0.5);
+    if !(scale > 0.0 && scale.is_finite()) {
+        return Vec::new();
+    }
+    let min_inliers = (finite.len() / 10).max(15);
+    let options = RobustOptions {
+        threshold: 0.01 * scale,
+        max_trials: 2000,
+        ..RobustOptions::default()
+    };
+    let mut remaining = finite;
+    let mut normals = Vec::new();
+    while normals.len() < count && remaining.len() >= min_inliers {
+        let Ok(report) = estimate(&PlaneEstimator, &remaining, &options) else {
+            break;
+        };
+        if report.num_inliers < min_inliers {
+            break;
+        }
+        normals.push(report.model);
+        remaining = remaining
+            .iter()
+            .zip(&report.inlier_mask)
+            .filter(|(_, inlier)| !**inlier)
+            .map(|(p, _)| *p)
+            .collect();
+    }
+    normals
+}
+
+/// The plane families swept for a view: fronto-parallel over its depth range, then one per
+/// dominant plane whose normal is more than 20° from the optical axis, over the planes
+/// parallel to it within `margin` of its distance from the camera (the plane itself and what
+/// lies just off it — a rug, a tabletop's clutter).
+fn plane_families(
+    view: &DenseView,
+    points: &[[f64; 3]],
+    dominant: &[ScenePlane],
+    margin: f64,
+) -> Vec<PlaneFamily> {
+    let axis = Vector3::z();
+    let Some(range) = plane_range(view, points, &axis, margin) else {
+        return Vec::new();
+    };
+    let mut families = vec![PlaneFamily {
+        normal: [0.0, 0.0, 1.0],
+        range,
+    }];
+    let centre = view.centre();
+    for plane in dominant {
+        let n_w = Vector3::from(plane.normal);
+        let mut n_c = view.rotation * n_w;
+        if n_c.z.abs() > 20f64.to_radians().cos() {
+            continue;
+        }
+        // In the camera frame the plane is n_c·X = d with d = −(offset + n_w·C).
+        let mut d = -(plane.offset + n_w.dot(&centre));
+        if d < 0.0 {
+            n_c = -n_c;
+            d = -d;
+        }
+        if !(d > 1e-9 * range.1 && d.is_finite()) {
+            continue;
+        }
+        families.push(PlaneFamily {
+            normal: n_c.into(),
+            range: (d * (1.0 - margin), d * (1.0 + margin)),
+        });
+    }
+    families
 }
 
 /// The best source views of view `r` (see the module documentation).
@@ -332,13 +443,22 @@ fn box_sums4(
     }
 }
 
-/// Plane-sweep depth of reference `r` (NaN where unknown) before the consistency check.
+/// A family of parallel sweep planes `n·X = d` in the reference camera frame, `d` swept
+/// uniformly in `1/d` over `range` (fronto-parallel: `n = (0, 0, 1)`, `d` the depth).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PlaneFamily {
+    normal: [f64; 3],
+    range: (f64, f64),
+}
+
+/// Plane-sweep depth of reference `r` (NaN where unknown) before the consistency check: each
+/// family is swept, and each pixel takes the depth of the family whose best plane costs least.
 fn sweep_view(
     views: &[DenseView],
     rays: &[Vec<Option<[f64; 3]>>],
     r: usize,
     sources: &[usize],
-    range: (f64, f64),
+    families: &[PlaneFamily],
     options: &DenseOptions,
 ) -> Vec<f32> {
     let reference = &views[r];
@@ -419,135 +539,166 @@ fn sweep_view(
         })
         .collect();
 
-    let d = options.num_depths;
-    let (inv_far, inv_near) = (1.0 / range.1, 1.0 / range.0);
-    let inv_depth = |k: f64| inv_far + (inv_near - inv_far) * k / (d - 1) as f64;
-
-    let mut best = vec![f32::INFINITY; w * h];
-    let mut best_k = vec![u32::MAX; w * h];
-    let mut before = vec![f32::INFINITY; w * h];
-    let mut after = vec![f32::INFINITY; w * h];
-    let mut last = vec![f32::INFINITY; w * h];
     let mut costs: Vec<Vec<f32>> = vec![vec![f32::INFINITY; w * h]; sources.len()];
     let mut channels: [Vec<f32>; 4] = std::array::from_fn(|_| zeros.clone());
-    for k in 0..d {
-        let depth_k = (1.0 / inv_depth(k as f64)) as f32;
-        for (s, source) in sources.iter().enumerate() {
-            let (sw, sh) = (source.plane.width as f32, source.plane.height as f32);
-            let pinhole = source.lens.is_pinhole();
-            let kk = source.lens.k;
-            let (fx, fy, cx, cy, skew) = (
-                kk.fx as f32,
-                kk.fy as f32,
-                kk.cx as f32,
-                kk.cy as f32,
-                kk.skew as f32,
-            );
-            let [c_w, c_w2, c_rw, c_valid] = &mut channels;
-            for i in 0..w * h {
-                let a = source.a[i];
-                let x = depth_k * a[0] + source.t[0];
-                let y = depth_k * a[1] + source.t[1];
-                let z = depth_k * a[2] + source.t[2];
-                let px = if !(z > 0.0) {
-                    None
-                } else if pinhole {
-                    let (u, v) = (x / z, y / z);
-                    Some([fx * u + skew * v + cx, fy * v + cy])
-                } else {
-                    source
-                        .lens
-                        .project([f64::from(x), f64::from(y), f64::from(z)])
-                        .map(|p| [p[0] as f32, p[1] as f32])
-                };
-                match px {
-                    Some([u, v]) if u >= 0.0 && v >= 0.0 && u <= sw - 1.0 && v <= sh - 1.0 => {
-                        let value = source.plane.bilinear(u, v) - GRAY_OFFSET;
-                        c_w[i] = value;
-                        c_w2[i] = value * value;
-                        c_rw[i] = value * centred[i];
-                        c_valid[i] = 1.0;
+    let d = options.num_depths;
+    let mut best_cost = vec![f32::INFINITY; w * h];
+    for family in families {
+        let (inv_far, inv_near) = (1.0 / family.range.1, 1.0 / family.range.0);
+        let inv_plane = |k: f64| inv_far + (inv_near - inv_far) * k / (d - 1) as f64;
+        // Depth of pixel p on the plane n·X = d_k is d_k · scale[p], scale = 1 / (n·ray).
+        let normal = Vector3::from(family.normal);
+        let scale: Vec<f32> = rays[r]
+            .iter()
+            .map(|ray| match ray {
+                Some(ray) => {
+                    let c = normal.dot(&Vector3::from(*ray));
+                    if c > 1e-3 { (1.0 / c) as f32 } else { f32::NAN }
+                }
+                None => f32::NAN,
+            })
+            .collect();
+        let scaled: Vec<Vec<[f32; 3]>> = sources
+            .iter()
+            .map(|source| {
+                source
+                    .a
+                    .iter()
+                    .zip(&scale)
+                    .map(|(a, &k)| a.map(|v| v * k))
+                    .collect()
+            })
+            .collect();
+        let mut best = vec![f32::INFINITY; w * h];
+        let mut best_k = vec![u32::MAX; w * h];
+        let mut before = vec![f32::INFINITY; w * h];
+        let mut after = vec![f32::INFINITY; w * h];
+        let mut last = vec![f32::INFINITY; w * h];
+        for k in 0..d {
+            let plane_k = (1.0 / inv_plane(k as f64)) as f32;
+            for (s, source) in sources.iter().enumerate() {
+                let (sw, sh) = (source.plane.width as f32, source.plane.height as f32);
+                let pinhole = source.lens.is_pinhole();
+                let kk = source.lens.k;
+                let (fx, fy, cx, cy, skew) = (
+                    kk.fx as f32,
+                    kk.fy as f32,
+                    kk.cx as f32,
+                    kk.cy as f32,
+                    kk.skew as f32,
+                );
+                let [c_w, c_w2, c_rw, c_valid] = &mut channels;
+                for (i, a) in scaled[s].iter().enumerate() {
+                    let x = plane_k * a[0] + source.t[0];
+                    let y = plane_k * a[1] + source.t[1];
+                    let z = plane_k * a[2] + source.t[2];
+                    let px = if !(z > 0.0) {
+                        None
+                    } else if pinhole {
+                        let (u, v) = (x / z, y / z);
+                        Some([fx * u + skew * v + cx, fy * v + cy])
+                    } else {
+                        source
+                            .lens
+                            .project([f64::from(x), f64::from(y), f64::from(z)])
+                            .map(|p| [p[0] as f32, p[1] as f32])
+                    };
+                    match px {
+                        Some([u, v]) if u >= 0.0 && v >= 0.0 && u <= sw - 1.0 && v <= sh - 1.0 => {
+                            let value = source.plane.bilinear(u, v) - GRAY_OFFSET;
+                            c_w[i] = value;
+                            c_w2[i] = value * value;
+                            c_rw[i] = value * centred[i];
+                            c_valid[i] = 1.0;
+                        }
+                        _ => {
+                            c_w[i] = 0.0;
+                            c_w2[i] = 0.0;
+                            c_rw[i] = 0.0;
+                            c_valid[i] = 0.0;
+                        }
                     }
-                    _ => {
-                        c_w[i] = 0.0;
-                        c_w2[i] = 0.0;
-                        c_rw[i] = 0.0;
-                        c_valid[i] = 0.0;
+                }
+                box_sums4(&channels, w, h, half, &mut rows, &mut sums);
+                let cost = &mut costs[s];
+                for i in 0..w * h {
+                    let vr = var_r[i];
+                    if vr <= 0.0 || sums[3][i] < n - 0.5 {
+                        cost[i] = f32::INFINITY;
+                        continue;
                     }
+                    let sw_ = sums[0][i];
+                    let vw = sums[1][i] - sw_ * sw_ / n;
+                    if vw < min_var.max(f32::MIN_POSITIVE) {
+                        cost[i] = f32::INFINITY;
+                        continue;
+                    }
+                    let num = sums[2][i] - sum_r[i] * sw_ / n;
+                    let zncc = (num / (vr * vw).sqrt()).clamp(-1.0, 1.0);
+                    cost[i] = 1.0 - zncc;
                 }
             }
-            box_sums4(&channels, w, h, half, &mut rows, &mut sums);
-            let cost = &mut costs[s];
+            // Aggregate the best sources and track the minimum over planes.
+            let keep = options.best_k.min(sources.len());
+            let mut picked = [f32::INFINITY; MAX_SOURCES];
             for i in 0..w * h {
-                let vr = var_r[i];
-                if vr <= 0.0 || sums[3][i] < n - 0.5 {
-                    cost[i] = f32::INFINITY;
+                if var_r[i] <= 0.0 {
                     continue;
                 }
-                let sw_ = sums[0][i];
-                let vw = sums[1][i] - sw_ * sw_ / n;
-                if vw < min_var.max(f32::MIN_POSITIVE) {
-                    cost[i] = f32::INFINITY;
-                    continue;
+                let mut valid = 0;
+                for cost in &costs {
+                    if cost[i].is_finite() {
+                        picked[valid] = cost[i];
+                        valid += 1;
+                    }
                 }
-                let num = sums[2][i] - sum_r[i] * sw_ / n;
-                let zncc = (num / (vr * vw).sqrt()).clamp(-1.0, 1.0);
-                cost[i] = 1.0 - zncc;
+                let c = if valid == 0 {
+                    f32::INFINITY
+                } else {
+                    let take = keep.min(valid);
+                    let sel = &mut picked[..valid];
+                    sel.sort_unstable_by(f32::total_cmp);
+                    sel[..take].iter().sum::<f32>() / take as f32
+                };
+                if best_k[i] != u32::MAX && k == best_k[i] as usize + 1 {
+                    after[i] = c;
+                }
+                if c < best[i] {
+                    best[i] = c;
+                    best_k[i] = k as u32;
+                    before[i] = last[i];
+                    after[i] = f32::INFINITY;
+                }
+                last[i] = c;
             }
         }
-        // Aggregate the best sources and track the minimum over planes.
-        let keep = options.best_k.min(sources.len());
-        let mut picked = [f32::INFINITY; MAX_SOURCES];
+        let max_cost = options.max_cost as f32;
         for i in 0..w * h {
-            if var_r[i] <= 0.0 {
+            let k = best_k[i];
+            if k == u32::MAX
+                || k == 0
+                || k as usize == d - 1
+                || best[i] > max_cost
+                || best[i] >= best_cost[i]
+            {
                 continue;
             }
-            let mut valid = 0;
-            for cost in &costs {
-                if cost[i].is_finite() {
-                    picked[valid] = cost[i];
-                    valid += 1;
-                }
+            let (c0, c1, c2) = (before[i], best[i], after[i]);
+            if !(c0.is_finite() && c2.is_finite()) {
+                continue;
             }
-            let c = if valid == 0 {
-                f32::INFINITY
+            let curvature = c0 - 2.0 * c1 + c2;
+            let delta = if curvature > 0.0 {
+                (0.5 * (c0 - c2) / curvature).clamp(-0.5, 0.5)
             } else {
-                let take = keep.min(valid);
-                let sel = &mut picked[..valid];
-                sel.sort_unstable_by(f32::total_cmp);
-                sel[..take].iter().sum::<f32>() / take as f32
+                0.0
             };
-            if best_k[i] != u32::MAX && k == best_k[i] as usize + 1 {
-                after[i] = c;
+            let inv = inv_plane(f64::from(k) + f64::from(delta));
+            let z = f64::from(scale[i]) / inv;
+            if inv > 0.0 && z.is_finite() && z > 0.0 {
+                depth[i] = z as f32;
+                best_cost[i] = best[i];
             }
-            if c < best[i] {
-                best[i] = c;
-                best_k[i] = k as u32;
-                before[i] = last[i];
-                after[i] = f32::INFINITY;
-            }
-            last[i] = c;
-        }
-    }
-    let max_cost = options.max_cost as f32;
-    for i in 0..w * h {
-        let k = best_k[i];
-        if k == u32::MAX || k == 0 || k as usize == d - 1 || best[i] > max_cost {
-            continue;
-        }
-        let (c0, c1, c2) = (before[i], best[i], after[i]);
-        if !(c0.is_finite() && c2.is_finite()) {
-            continue;
-        }
-        let curvature = c0 - 2.0 * c1 + c2;
-        let delta = if curvature > 0.0 {
-            (0.5 * (c0 - c2) / curvature).clamp(-0.5, 0.5)
-        } else {
-            0.0
-        };
-        let inv = inv_depth(f64::from(k) + f64::from(delta));
-        if inv > 0.0 {
-            depth[i] = (1.0 / inv) as f32;
         }
     }
     depth
@@ -645,21 +796,19 @@ pub fn dense_depth(
         .par_iter()
         .map(|v| pixel_rays(&v.lens, v.gray.width, v.gray.height))
         .collect();
-    let plans: Vec<(Vec<usize>, Option<(f64, f64)>)> = (0..views.len())
+    let dominant = dominant_planes(points, options.dominant_planes);
+    let plans: Vec<(Vec<usize>, Vec<PlaneFamily>)> = (0..views.len())
         .map(|r| {
             (
                 select_sources(views, points, r, options),
-                depth_range(&views[r], points, options.depth_margin),
+                plane_families(&views[r], points, &dominant, options.depth_margin),
             )
         })
         .collect();
     let raw: Vec<Vec<f32>> = plans
         .par_iter()
         .enumerate()
-        .map(|(r, (sources, range))| match range {
-            Some(range) => sweep_view(views, &rays, r, sources, *range, options),
-            None => vec![f32::NAN; views[r].gray.data.len()],
-        })
+        .map(|(r, (sources, families))| sweep_view(views, &rays, r, sources, families, options))
         .collect();
     let filtered: Vec<Vec<f32>> = if options.min_consistent == 0 {
         raw.clone()
@@ -685,12 +834,13 @@ pub fn dense_depth(
     Ok(plans
         .into_iter()
         .zip(raw.iter().zip(filtered))
-        .map(|((sources, range), (raw, depth))| ViewDepth {
+        .map(|((sources, families), (raw, depth))| ViewDepth {
             matched: raw.iter().filter(|d| d.is_finite()).count(),
             kept: depth.iter().filter(|d| d.is_finite()).count(),
             depth,
             sources,
-            range,
+            range: families.first().map(|f| f.range),
+            plane_families: families.len(),
         })
         .collect())
 }
@@ -727,6 +877,11 @@ params! {
         max_reprojection_px: f64 = 1.0 => [min = 0.0, unit = "px"],
         /// Largest relative depth difference of an agreeing view. Default 0.01.
         max_depth_rel: f64 = 0.01 => [min = 0.0],
+        /// Dominant planes of the sparse points (sequential RANSAC) whose orientation is swept
+        /// besides the fronto-parallel one: slanted surfaces such as a floor seen at a grazing
+        /// angle match far better on planes parallel to them. Each costs one more sweep.
+        /// Default 1.
+        dominant_planes: u32 = 1 => [min = 0, max = 8],
     }
 }
 
@@ -763,9 +918,12 @@ cameras scaled to match): outputs are at that resolution.
 Outputs, one item per registered image in reconstruction order, ready for mesh.tsdf_fusion
 (`depth_kind: "z"`): `depths` (f32 Z-depth along the optical axis, reconstruction units, NaN
 where unknown), `cameras`, `poses` (camera_from_world), `colors` (the images at that level);
-`metrics`: views, width, height, planes, sources (mean per view), matched_fraction (pixels with
-a depth before the consistency check, mean over views), valid_fraction (after it),
-views_without_range (views seeing fewer than 3 sparse points, left empty).
+`points` (every kept depth back-projected to the world, coloured from its image, with a normal
+from the neighbouring depths turned towards the camera: the union of the views, in view order —
+the dense cloud to view or to mesh with mesh.poisson); `metrics`: views, width, height, planes,
+sources (mean per view), matched_fraction (pixels with a depth before the consistency check,
+over all pixels), valid_fraction (after it), views_without_range (views seeing fewer than 3
+sparse points, left empty), points.
 
 The result does not depend on the thread count. The sweep takes time ∝ pixels × num_depths ×
 sources and does not grow with window_px.
@@ -820,10 +978,15 @@ Example:
                 "The images at the matching level.",
             ),
             PortSpec::new(
+                "points",
+                PortType::PointCloud,
+                "Every kept depth as a world point, coloured, with normals, views in order.",
+            ),
+            PortSpec::new(
                 "metrics",
                 PortType::Metrics,
                 "views, width, height, planes, sources, matched_fraction, valid_fraction, \
-                 views_without_range.",
+                 views_without_range, points.",
             ),
         ]
     }
@@ -841,6 +1004,7 @@ Example:
             min_consistent: p.min_consistent as usize,
             max_reprojection_px: p.max_reprojection_px,
             max_depth_rel: p.max_depth_rel,
+            dominant_planes: p.dominant_planes as usize,
         };
         options.validate()?;
         Ok(DenseDepth { params: p, options })
@@ -969,8 +1133,55 @@ impl Operator for DenseDepth {
         let mut cameras = Vec::with_capacity(result.len());
         let mut poses = Vec::with_capacity(result.len());
         let (mut pixels, mut matched, mut kept, mut sources, mut no_range) = (0, 0, 0, 0, 0);
-        for ((view, out), image) in views.iter().zip(&result).zip(&reconstruction.images) {
+        let mut cloud = PointCloud {
+            positions: Vec::new(),
+            colors: Some(Vec::new()),
+            normals: Some(Vec::new()),
+        };
+        let depth_options = DepthOptions {
+            depth_scale: 1.0,
+            kind: DepthKind::Z,
+            min_depth: 0.0,
+            max_depth: f64::INFINITY,
+            stride: 1,
+            normals: true,
+            max_depth_jump: 0.05,
+        };
+        for (((view, out), image), color) in views
+            .iter()
+            .zip(&result)
+            .zip(&reconstruction.images)
+            .zip(&colors)
+        {
             let (w, h) = (view.gray.width, view.gray.height);
+            let rgb = if color.depth() == Depth::U8 {
+                (**color).clone()
+            } else {
+                convert_type(color, Depth::U8, None, 0.0)
+                    .map_err(|e| OpError::input("images", e.to_string()))?
+            };
+            let channels = rgb.channels().count();
+            let PixelData::U8(rgb) = rgb.into_data() else {
+                return Err(OpError::failed("colour conversion to u8 failed"));
+            };
+            let part = depth_to_points(
+                &out.depth,
+                w,
+                h,
+                &view.lens,
+                Some(&image.camera_from_world),
+                Some((&rgb, channels)),
+                &depth_options,
+            )
+            .map_err(|e| OpError::failed(e.to_string()))?
+            .cloud;
+            cloud.positions.extend(part.positions);
+            if let (Some(all), Some(c)) = (cloud.colors.as_mut(), part.colors) {
+                all.extend(c);
+            }
+            if let (Some(all), Some(n)) = (cloud.normals.as_mut(), part.normals) {
+                all.extend(n);
+            }
             let depth = Image::from_f32(
                 w,
                 h,
@@ -1011,6 +1222,7 @@ impl Operator for DenseDepth {
             kept as f64 / (pixels.max(1)) as f64,
         );
         m.insert("views_without_range".into(), no_range as f64);
+        m.insert("points".into(), cloud.positions.len() as f64);
         Ok(Outputs::new()
             .with("depths", Value::list(PortType::Image, depths))
             .with("cameras", Value::list(PortType::Camera, cameras))
@@ -1022,6 +1234,7 @@ impl Operator for DenseDepth {
                     colors.into_iter().map(Value::Image).collect(),
                 ),
             )
+            .with("points", Value::PointCloud(Arc::new(cloud)))
             .with("metrics", Value::metrics(m)))
     }
 }
@@ -1198,6 +1411,47 @@ mod tests {
             let (near, far) = o.range.unwrap();
             assert!(near > 0.0 && far > near);
         }
+    }
+
+    #[test]
+    fn sweeping_the_floor_orientation_recovers_the_slanted_floor() {
+        let (shots, points) = scene();
+        let views: Vec<DenseView> = shots.iter().map(|s| s.view.clone()).collect();
+        let planes = dominant_planes(&points, 2);
+        // The floor (y = 0) and the wall (z = −2), the floor first: it holds more points.
+        assert_eq!(planes.len(), 2);
+        assert!(planes[0].normal[1].abs() > 0.9999 && planes[0].offset.abs() < 1e-3);
+        assert!(planes[1].normal[2].abs() > 0.9999);
+        let floor = |s: &Shot, i: usize| {
+            let (r, t) = (s.view.rotation, s.view.translation);
+            let n = lens().from_pixel([(i % W) as f64, (i / W) as f64]);
+            let x = r.transpose() * (Vector3::new(n[0], n[1], 1.0) * s.depth[i] - t);
+            x.y.abs() < 1e-6
+        };
+        let mut line = Vec::new();
+        for dominant_planes in [0, 1] {
+            let o = DenseOptions {
+                dominant_planes,
+                ..DenseOptions::default()
+            };
+            let out = dense_depth(&views, &points, &o).unwrap();
+            let (mut kept, mut total, mut errors) = (0, 0, Vec::new());
+            for (o, s) in out.iter().zip(&shots) {
+                for i in (0..W * H).filter(|&i| s.depth[i].is_finite() && floor(s, i)) {
+                    total += 1;
+                    if o.depth[i].is_finite() {
+                        kept += 1;
+                        errors.push((f64::from(o.depth[i]) - s.depth[i]).abs() / s.depth[i]);
+                    }
+                }
+            }
+            line.push((kept as f64 / total as f64, quantile(&mut errors, 0.5)));
+        }
+        // Measured: fronto-parallel planes alone keep 46 % of the floor at a median error of
+        // 1.7 %; adding the floor's orientation keeps 72 % at 0.024 %.
+        let [(kept_0, median_0), (kept_1, median_1)] = [line[0], line[1]];
+        assert!(kept_1 > 0.65 && kept_1 > kept_0 + 0.15, "{line:?}");
+        assert!(median_1 < 1e-3 && median_0 > 10.0 * median_1, "{line:?}");
     }
 
     #[test]
@@ -1388,5 +1642,27 @@ mod tests {
             panic!("metrics");
         };
         assert_eq!((m["views"], m["width"], m["planes"]), (5.0, 80.0, 96.0));
+        let kept = (m["valid_fraction"] * 5.0 * 80.0 * 60.0).round();
+        assert_eq!(m["points"], kept);
+        let Some(Value::PointCloud(cloud)) = out.take("points") else {
+            panic!("points");
+        };
+        assert_eq!(cloud.positions.len() as f64, kept);
+        // The points lie on the scene (the floor, the wall or the sphere), to within the
+        // depth error of 80 × 60 images.
+        let off_surface = cloud
+            .positions
+            .iter()
+            .filter(|p| {
+                let p = Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+                let d =
+                    p.y.abs()
+                        .min((p.z + 2.0).abs())
+                        .min(((p - Vector3::new(0.0, 0.5, 0.0)).norm() - 0.5).abs());
+                d > 0.1
+            })
+            .count();
+        // Measured: 30 of 9801 points farther than 0.1 (about 3 % of the depth) at this level.
+        assert!(off_surface * 100 < cloud.positions.len(), "{off_surface}");
     }
 }
