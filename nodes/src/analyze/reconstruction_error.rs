@@ -407,6 +407,19 @@ fn list<'a>(inputs: &Inputs<'a>, port: &str) -> Result<Option<&'a [Value]>, OpEr
     }
 }
 
+/// The required `reconstruction` input.
+pub(crate) fn reconstruction_input<'a>(
+    inputs: &Inputs<'a>,
+) -> Result<&'a std::sync::Arc<Reconstruction>, OpError> {
+    match inputs.require("reconstruction")? {
+        Value::Reconstruction(r) => Ok(r),
+        other => Err(OpError::input(
+            "reconstruction",
+            format!("expected Reconstruction, got {}", other.port_type()),
+        )),
+    }
+}
+
 /// The `poses` (required) and `names` (optional) inputs of the operators that compare a
 /// reconstruction with the truth.
 pub(crate) fn truth_inputs(
@@ -442,15 +455,7 @@ pub(crate) fn truth_inputs(
 
 impl Operator for ReconstructionError {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
-        let reconstruction = match inputs.require("reconstruction")? {
-            Value::Reconstruction(r) => r,
-            other => {
-                return Err(OpError::input(
-                    "reconstruction",
-                    format!("expected Reconstruction, got {}", other.port_type()),
-                ));
-            }
-        };
+        let reconstruction = reconstruction_input(inputs)?;
         let (poses, names) = truth_inputs(inputs)?;
         let report = reconstruction_error(reconstruction, &poses, names.as_deref())
             .map_err(OpError::failed)?;

@@ -7,6 +7,7 @@
 
 use std::sync::Arc;
 
+use crate::analyze::reconstruction_error::reconstruction_input;
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
@@ -100,15 +101,7 @@ Example:
 
 impl Operator for ReconstructionPoints {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
-        let reconstruction = match inputs.require("reconstruction")? {
-            Value::Reconstruction(r) => r,
-            other => {
-                return Err(OpError::input(
-                    "reconstruction",
-                    format!("expected Reconstruction, got {}", other.port_type()),
-                ));
-            }
-        };
+        let reconstruction = reconstruction_input(inputs)?;
         let cloud = reconstruction_points(
             reconstruction,
             self.params.min_track_length as usize,

@@ -17,7 +17,7 @@ use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Metrics, Pose, Reconstruction, Value};
 
 use crate::analyze::reconstruction_error::{
-    rotation_and_centre, similarity_to_truth, truth_inputs,
+    reconstruction_input, rotation_and_centre, similarity_to_truth, truth_inputs,
 };
 use crate::geometry::pose_util::pose_from_rt;
 use crate::geometry::transforms::Similarity3;
@@ -154,15 +154,7 @@ Example:
 
 impl Operator for Align {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
-        let reconstruction = match inputs.require("reconstruction")? {
-            Value::Reconstruction(r) => r,
-            other => {
-                return Err(OpError::input(
-                    "reconstruction",
-                    format!("expected Reconstruction, got {}", other.port_type()),
-                ));
-            }
-        };
+        let reconstruction = reconstruction_input(inputs)?;
         let (poses, names) = truth_inputs(inputs)?;
         let aligned = align_reconstruction(reconstruction, &poses, names.as_deref())
             .map_err(OpError::failed)?;

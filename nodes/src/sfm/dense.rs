@@ -54,7 +54,7 @@ use ocellus_engine::value::{
 };
 use rayon::prelude::*;
 
-use crate::analyze::reconstruction_error::match_views;
+use crate::analyze::reconstruction_error::{match_views, reconstruction_input};
 use crate::filter::convert::convert_type;
 use crate::filter::pyramid::pyr_down;
 use crate::geometry::camera::Lens;
@@ -126,7 +126,7 @@ impl DenseOptions {
         if self.num_depths < 3 {
             return Err(format!("`num_depths` must be ≥ 3, got {}", self.num_depths));
         }
-        if self.window_px < 3 || self.window_px % 2 == 0 {
+        if self.window_px < 3 || self.window_px.is_multiple_of(2) {
             return Err(format!(
                 "`window_px` must be odd and ≥ 3, got {}",
                 self.window_px
@@ -592,7 +592,7 @@ fn sweep_view(
                     let x = plane_k * a[0] + source.t[0];
                     let y = plane_k * a[1] + source.t[1];
                     let z = plane_k * a[2] + source.t[2];
-                    let px = if !(z > 0.0) {
+                    let px = if z.is_nan() || z <= 0.0 {
                         None
                     } else if pinhole {
                         let (u, v) = (x / z, y / z);
@@ -1026,13 +1026,16 @@ fn scaled_lens(lens: Lens, factor: f64) -> Lens {
     }
 }
 
+/// Views at a pyramid level, their images at that level, and the sparse points.
+type ViewsAtLevel = (Vec<DenseView>, Vec<Arc<Image>>, Vec<[f64; 3]>);
+
 /// The views of a reconstruction at pyramid `level`, with their images at that level.
 fn views_of(
     reconstruction: &Reconstruction,
     images: &[Arc<Image>],
     names: Option<&[String]>,
     level: u32,
-) -> Result<(Vec<DenseView>, Vec<Arc<Image>>, Vec<[f64; 3]>), OpError> {
+) -> Result<ViewsAtLevel, OpError> {
     let view_of = match_views(reconstruction, images.len(), names)
         .map_err(|e| OpError::input("images", e))?;
     let index_of: std::collections::HashMap<u64, usize> = reconstruction
@@ -1105,15 +1108,7 @@ fn views_of(
 
 impl Operator for DenseDepth {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
-        let reconstruction = match inputs.require("reconstruction")? {
-            Value::Reconstruction(r) => r,
-            other => {
-                return Err(OpError::input(
-                    "reconstruction",
-                    format!("expected Reconstruction, got {}", other.port_type()),
-                ));
-            }
-        };
+        let reconstruction = reconstruction_input(inputs)?;
         let images = list_items(inputs, "images", PortType::Image, |v| match v {
             Value::Image(i) => Some(Arc::clone(i)),
             _ => None,
