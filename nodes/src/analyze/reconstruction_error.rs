@@ -113,18 +113,20 @@ fn base_name(name: &str) -> &str {
     name.rsplit(['/', '\\']).next().unwrap_or(name)
 }
 
-/// For each reconstruction image (in its order), the view it shows, or an error.
+/// For each reconstruction image (in its order), the view it shows, or an error; `list` names
+/// the input holding the views in messages.
 pub(crate) fn match_views(
     reconstruction: &Reconstruction,
     views: usize,
     names: Option<&[String]>,
+    list: &str,
 ) -> Result<Vec<usize>, String> {
     let mut view_of = Vec::with_capacity(reconstruction.images.len());
     match names {
         Some(names) => {
             if names.len() != views {
                 return Err(format!(
-                    "`names` has {} entries but `poses` {views}",
+                    "`names` has {} entries but `{list}` {views}",
                     names.len()
                 ));
             }
@@ -158,7 +160,7 @@ pub(crate) fn match_views(
                     .ok_or_else(|| {
                         format!(
                             "image id {} has no view: without `names`, image id k + 1 is \
-                             poses[k] (1..={views})",
+                             {list}[k] (1..={views})",
                             image.id
                         )
                     })?;
@@ -186,7 +188,7 @@ pub(crate) fn similarity_to_truth(
     truth: &[Pose],
     names: Option<&[String]>,
 ) -> Result<(Similarity3, Vec<usize>), String> {
-    let view_of = match_views(reconstruction, truth.len(), names)?;
+    let view_of = match_views(reconstruction, truth.len(), names, "poses")?;
     let registered = view_of.len();
     if registered < 3 {
         return Err(format!(

@@ -562,7 +562,8 @@ Example:
         vec![PortSpec::new(
             "metrics",
             PortType::Metrics,
-            "chamfer, hausdorff, mean/rms/max each way.",
+            "chamfer, hausdorff, mean/rms/max each way; precision, recall, f_score with a \
+             threshold.",
         )]
     }
 

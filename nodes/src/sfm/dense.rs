@@ -15,8 +15,9 @@
 //! `min_std` gray levels (no texture to match), give that source no vote. The plane's cost at a
 //! pixel is the mean of the `best_k` smallest source costs — Kang, Szeliski & Chai, "Handling
 //! occlusions in dense multi-view stereo" (CVPR 2001): a point hidden in one source is still
-//! matched by the others. Window sums are box filters (a running sum along rows, then a direct
-//! sum of rows), so the cost of a plane does not grow with the window.
+//! matched by the others. Window sums are box filters: a running sum along each row (whatever
+//! the window), then a direct sum of `window_px` row sums, which vectorizes; a plane's cost
+//! grows only through that one add per window row.
 //!
 //! **Sources**: for each reference the `sources` views sharing the most sparse points seen
 //! under a triangulation angle of at least `min_tri_angle_deg` (COLMAP's selection by shared,
@@ -754,7 +755,7 @@ fn consistent_views(
                 };
                 let e2 = (pb[0] - p[0]).powi(2) + (pb[1] - p[1]).powi(2);
                 if e2 <= max_reproj2 {
-                    agree += 1;
+                    agree = agree.saturating_add(1);
                 }
             }
             agree
@@ -863,20 +864,20 @@ params! {
         /// Smallest triangulation angle of a shared sparse point for it to count towards
         /// choosing a source view, degrees. Default 3.
         min_tri_angle_deg: f64 = 3.0 => [min = 0.0, max = 180.0, unit = "degrees"],
-        /// Widening of the sparse points' depth range at both ends (relative, < 1).
+        /// Widening of the sparse points' depth range at both ends (relative, at most 0.95).
         /// Default 0.2.
-        depth_margin: f64 = 0.2 => [min = 0.0, max = 1.0],
+        depth_margin: f64 = 0.2 => [min = 0.0, max = 0.95],
         /// Largest accepted matching cost 1 − ZNCC (0 perfect, 2 inverted). Default 0.6.
-        max_cost: f64 = 0.6 => [min = 0.0, max = 2.0],
+        max_cost: f64 = 0.6 => [above = 0.0, max = 2.0],
         /// Smallest window standard deviation to match, gray levels (0–255). Default 2.
         min_std: f64 = 2.0 => [min = 0.0],
         /// Other views that must agree with a depth for it to be kept (0: keep all). Default 2.
         min_consistent: u32 = 2 => [min = 0, max = 1000],
         /// Largest round-trip reprojection error of an agreeing view, pixels at the matching
         /// level. Default 1.
-        max_reprojection_px: f64 = 1.0 => [min = 0.0, unit = "px"],
+        max_reprojection_px: f64 = 1.0 => [above = 0.0, unit = "px"],
         /// Largest relative depth difference of an agreeing view. Default 0.01.
-        max_depth_rel: f64 = 0.01 => [min = 0.0],
+        max_depth_rel: f64 = 0.01 => [above = 0.0],
         /// Dominant planes of the sparse points (sequential RANSAC) whose orientation is swept
         /// besides the fronto-parallel one: slanted surfaces such as a floor seen at a grazing
         /// angle match far better on planes parallel to them. Each costs one more sweep.
@@ -904,8 +905,13 @@ fronto-parallel planes spaced in inverse depth across the range of the sparse po
 sees (widened by `depth_margin`), matched by ZNCC over `window_px` windows against the
 `sources` views sharing the most well-triangulated sparse points (angle ≥ min_tri_angle_deg),
 each plane's cost the mean of the `best_k` best source costs (Kang et al., CVPR 2001, for
-occlusions). The least-cost plane wins if its cost 1 − ZNCC ≤ max_cost and it is not at either
-end of the range; a parabola refines it. Then each depth must be confirmed by `min_consistent`
+occlusions). Besides the fronto-parallel planes, planes parallel to each of the
+`dominant_planes` dominant planes of the sparse points (sequential RANSAC, each holding ≥ 10 %
+of them) are swept over ±depth_margin of that plane's distance, in every view whose optical
+axis is more than 20° from its normal (Gallup et al.'s multiple sweeping directions): a floor
+or wall seen at a grazing angle matches far better on planes parallel to it. Per pixel the
+least-cost plane of all families wins if its cost 1 − ZNCC ≤ max_cost and it is not at either
+end of its family's range; a parabola refines it. Then each depth must be confirmed by `min_consistent`
 other views: projected there, their depth at that pixel agrees within max_depth_rel and maps
 back within max_reprojection_px (COLMAP's geometric consistency). Projections use each
 camera's full lens model.
@@ -920,13 +926,17 @@ Outputs, one item per registered image in reconstruction order, ready for mesh.t
 where unknown), `cameras`, `poses` (camera_from_world), `colors` (the images at that level);
 `points` (every kept depth back-projected to the world, coloured from its image, with a normal
 from the neighbouring depths turned towards the camera: the union of the views, in view order —
-the dense cloud to view or to mesh with mesh.poisson); `metrics`: views, width, height, planes,
-sources (mean per view), matched_fraction (pixels with a depth before the consistency check,
+the dense cloud to view or to mesh with mesh.poisson); `metrics`: views, width, height, planes
+(num_depths), plane_families (mean per view, 1 = fronto-parallel only), sources (mean per
+view), matched_fraction (pixels with a depth before the consistency check,
 over all pixels), valid_fraction (after it), views_without_range (views seeing fewer than 3
 sparse points, left empty), points.
 
 The result does not depend on the thread count. The sweep takes time ∝ pixels × num_depths ×
-sources and does not grow with window_px.
+sources × plane families (1 + the dominant planes not facing the camera); window_px adds one
+vectorized add per window row. Memory per view in flight is about 24 bytes × sources per pixel
+plus some 15 floats per pixel, and views run in parallel: at level 0 on 12-megapixel photos
+that is several GB per thread, so match at level ≥ 1 there.
 
 Example:
     "dense": (op: "sfm.dense_depth",
@@ -985,8 +995,8 @@ Example:
             PortSpec::new(
                 "metrics",
                 PortType::Metrics,
-                "views, width, height, planes, sources, matched_fraction, valid_fraction, \
-                 views_without_range, points.",
+                "views, width, height, planes, plane_families, sources, matched_fraction, \
+                 valid_fraction, views_without_range, points.",
             ),
         ]
     }
@@ -1036,7 +1046,7 @@ fn views_of(
     names: Option<&[String]>,
     level: u32,
 ) -> Result<ViewsAtLevel, OpError> {
-    let view_of = match_views(reconstruction, images.len(), names)
+    let view_of = match_views(reconstruction, images.len(), names, "images")
         .map_err(|e| OpError::input("images", e))?;
     let index_of: std::collections::HashMap<u64, usize> = reconstruction
         .points
@@ -1128,6 +1138,7 @@ impl Operator for DenseDepth {
         let mut cameras = Vec::with_capacity(result.len());
         let mut poses = Vec::with_capacity(result.len());
         let (mut pixels, mut matched, mut kept, mut sources, mut no_range) = (0, 0, 0, 0, 0);
+        let mut families = 0;
         let mut cloud = PointCloud {
             positions: Vec::new(),
             colors: Some(Vec::new()),
@@ -1193,6 +1204,7 @@ impl Operator for DenseDepth {
             matched += out.matched;
             kept += out.kept;
             sources += out.sources.len();
+            families += out.plane_families;
             no_range += usize::from(out.range.is_none());
         }
         let n = result.len() as f64;
@@ -1208,6 +1220,7 @@ impl Operator for DenseDepth {
         );
         m.insert("planes".into(), self.options.num_depths as f64);
         m.insert("sources".into(), sources as f64 / n.max(1.0));
+        m.insert("plane_families".into(), families as f64 / n.max(1.0));
         m.insert(
             "matched_fraction".into(),
             matched as f64 / (pixels.max(1)) as f64,
