@@ -350,6 +350,15 @@ pub fn decode_image(
         }))
         .unwrap_or_else(|_| Err(corrupt(path, "the EXR decoder panicked on this data"))),
         Detected::Codec(format) => {
+            if format == image::ImageFormat::Jpeg && !jpeg_has_end_after_last_scan(bytes) {
+                // The JPEG decoder fills a cut-off scan with grey and reports success (as
+                // libjpeg does, with a "premature end" warning); a partial picture must not
+                // pass for the photo.
+                return Err(corrupt(
+                    path,
+                    "truncated JPEG: no end-of-image marker after the last scan",
+                ));
+            }
             // Third-party decoders face hostile bytes here; a panic in one of them must not take
             // the whole run down, so it becomes an ordinary decode error.
             panic::catch_unwind(AssertUnwindSafe(|| {
@@ -357,6 +366,19 @@ pub fn decode_image(
             }))
             .unwrap_or_else(|_| Err(corrupt(path, "the decoder panicked on this data")))
         }
+    }
+}
+
+/// Whether a JPEG stream has an end-of-image marker (`FF D9`) after its last start-of-scan
+/// (`FF DA`). Inside entropy-coded data a `FF` byte is always stuffed (`FF 00`) or a restart
+/// marker (`FF D0`–`FF D7`), so `FF D9` there is the real end; an embedded thumbnail's markers
+/// come before the main image's last scan.
+fn jpeg_has_end_after_last_scan(bytes: &[u8]) -> bool {
+    let last_scan = bytes.windows(2).rposition(|w| w == [0xFF, 0xDA]);
+    match last_scan {
+        Some(at) => bytes[at..].windows(2).any(|w| w == [0xFF, 0xD9]),
+        // No scan at all: the decoder reports that itself.
+        None => true,
     }
 }
 
@@ -1253,6 +1275,24 @@ mod tests {
             decode_image(bytes, Path::new("fuzz.bin"), &DecodeLimits::default())
         {
             assert!(!message.contains("panicked"), "{what}: decoder panicked");
+        }
+    }
+
+    #[test]
+    fn a_truncated_jpeg_is_an_error_and_a_whole_one_is_not() {
+        let pixels: Vec<u8> = (0..64 * 48 * 3).map(|i| (i * 7 % 251) as u8).collect();
+        let image = Image::from_u8(64, 48, Channels::Rgb, pixels).unwrap();
+        let bytes = encode_image(&image, ImageFormat::Jpeg { quality: 90 }).unwrap();
+        let path = Path::new("cut.jpg");
+        let limits = DecodeLimits::default();
+        assert!(decode_image(&bytes, path, &limits).is_ok());
+        // Trailing bytes after the end marker are tolerated, as every decoder does.
+        let mut padded = bytes.clone();
+        padded.extend_from_slice(&[0, 0, 0]);
+        assert!(decode_image(&padded, path, &limits).is_ok());
+        for keep in [bytes.len() - 2, bytes.len() * 3 / 4, bytes.len() / 2] {
+            let err = decode_image(&bytes[..keep], path, &limits).unwrap_err();
+            assert!(err.to_string().contains("truncated JPEG"), "{keep}: {err}");
         }
     }
 
