@@ -57,7 +57,7 @@ fn png_claiming(width: u32, height: u32) -> Vec<u8> {
 fn truncated_jpeg(dir: &Path) -> Vec<u8> {
     let (w, h) = (640, 480);
     let pixels: Vec<u8> = (0..w * h * 3)
-        .map(|i| ((i % (w * 3)) * 255 / (w * 3) ^ (i / (w * 3)) % 256) as u8)
+        .map(|i| (((i % (w * 3)) * 255 / (w * 3)) ^ ((i / (w * 3)) % 256)) as u8)
         .collect();
     let image = Image::from_u8(w, h, Channels::Rgb, pixels).unwrap();
     let full = dir.join("full.jpg");
