@@ -1,5 +1,5 @@
 //! Every graph in `graphs/` is snapshot-tested, and its emitted files are byte-identical for
-//! `--threads 1` and `--threads 2`.
+//! `--threads 1`, `2` and `8` and across repeated runs.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test code: a failed unwrap is a failed test
 
@@ -216,12 +216,13 @@ fn every_example_graph_is_snapshot_tested_and_valid() {
 }
 
 #[test]
-fn emitted_files_are_identical_for_one_and_two_threads() {
+fn emitted_files_are_identical_for_one_two_and_eight_threads_and_a_repeated_run() {
     for path in example_graphs() {
         let dir = temp_dir("threads");
         let mut emitted = Vec::new();
-        for threads in ["1", "2"] {
-            let out_dir = dir.join(threads);
+        // 1, 2 and 8 threads, then 2 again in a fresh process (no cache: a real recompute).
+        for (run, threads) in ["1", "2", "8", "2"].into_iter().enumerate() {
+            let out_dir = dir.join(format!("{run}_{threads}"));
             let mut args = vec![
                 "run",
                 path.to_str().unwrap(),
@@ -241,12 +242,13 @@ fn emitted_files_are_identical_for_one_and_two_threads() {
             emitted.push(files_below(&out_dir));
         }
         assert!(!emitted[0].is_empty(), "{} emitted nothing", path.display());
-        assert_eq!(
-            emitted[0],
-            emitted[1],
-            "{}: files differ between thread counts",
-            path.display()
-        );
+        for (run, other) in emitted.iter().enumerate().skip(1) {
+            assert!(
+                emitted[0] == *other,
+                "{}: files of run {run} (threads 1, 2, 8, 2) differ from the 1-thread run",
+                path.display()
+            );
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }
