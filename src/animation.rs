@@ -36,7 +36,7 @@ pub fn run_animated(
         };
         let mut emitter = match (&args.emit, last_repeat) {
             (Some(dir), true) => {
-                if let Err(e) = std::fs::create_dir_all(dir) {
+                if let Err(e) = ocellus_engine::temp_files::prepare_dir(dir) {
                     eprintln!("error: cannot create {}: {e}", dir.display());
                     return ExitCode::from(EXIT_FAILED);
                 }

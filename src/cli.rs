@@ -528,7 +528,8 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
 }
 
 fn emit_all(dir: &Path, report: &RunReport) -> Result<(), String> {
-    std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+    ocellus_engine::temp_files::prepare_dir(dir)
+        .map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
     let mut failed = Vec::new();
     for (name, value) in &report.outputs {
         if let Err(e) = ocellus_engine::emit::emit_value(dir, name, value) {

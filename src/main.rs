@@ -20,6 +20,7 @@ fn main() -> ExitCode {
     std::panic::set_hook(Box::new(|_| {}));
     let args = cli::Cli::parse();
     init_tracing(args.verbose);
+    remove_partial_files_on_interrupt();
     match std::panic::catch_unwind(|| cli::dispatch(args)) {
         Ok(code) => code,
         Err(payload) => {
@@ -30,6 +31,35 @@ fn main() -> ExitCode {
                 .unwrap_or_else(|| "unknown panic".into());
             eprintln!("error: internal error: {message}\nplease report this as a bug");
             ExitCode::from(70)
+        }
+    }
+}
+
+/// On SIGINT, SIGTERM or SIGHUP, removes the temp files of the writes in flight and exits with
+/// 128 + the signal number, as a shell reports a signal: outputs already renamed into place are
+/// complete, and nothing partial is left (see `ocellus_engine::temp_files`).
+fn remove_partial_files_on_interrupt() {
+    #[cfg(unix)]
+    {
+        use signal_hook::consts::{SIGHUP, SIGINT, SIGTERM};
+        let Ok(mut signals) = signal_hook::iterator::Signals::new([SIGINT, SIGTERM, SIGHUP]) else {
+            tracing::warn!(
+                "cannot install signal handlers; an interrupted run may leave temp files"
+            );
+            return;
+        };
+        let spawned = std::thread::Builder::new()
+            .name("signals".into())
+            .spawn(move || {
+                if let Some(signal) = signals.forever().next() {
+                    eprintln!("\ninterrupted (signal {signal}); removing partial files");
+                    ocellus_engine::temp_files::remove_all_and_exit(128 + signal);
+                }
+            });
+        if spawned.is_err() {
+            tracing::warn!(
+                "cannot start the signal thread; an interrupted run may leave temp files"
+            );
         }
     }
 }

@@ -109,7 +109,7 @@ pub fn write_report(
     };
     let html = page.render();
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent)
+        ocellus_engine::temp_files::prepare_dir(parent)
             .map_err(|e| format!("cannot create {}: {e}", parent.display()))?;
     }
     write_atomic(path, html.as_bytes())

@@ -108,7 +108,7 @@ pub fn run_streamed(args: &RunArgs, graph: &Graph, spec: &StreamSpec, threads: u
         let last_repeat = repeat + 1 == args.repeat;
         let options = args.options(threads);
         if let (Some(dir), true) = (&args.emit, last_repeat)
-            && let Err(e) = std::fs::create_dir_all(dir)
+            && let Err(e) = ocellus_engine::temp_files::prepare_dir(dir)
         {
             eprintln!("error: cannot create {}: {e}", dir.display());
             return ExitCode::from(EXIT_FAILED);

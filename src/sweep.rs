@@ -482,7 +482,7 @@ pub fn sweep(registry: &mut Registry, args: &SweepArgs, plugins: Plugins) -> Exi
             }
         }
     };
-    if let Err(e) = std::fs::create_dir_all(&args.out) {
+    if let Err(e) = ocellus_engine::temp_files::prepare_dir(&args.out) {
         eprintln!("error: cannot create {}: {e}", args.out.display());
         return ExitCode::from(EXIT_FAILED);
     }

@@ -70,7 +70,6 @@
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
-use std::fs;
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
@@ -185,7 +184,7 @@ fn check_name(name: &str) -> Result<(), EmitError> {
 }
 
 fn create_dir(dir: &Path) -> Result<(), EmitError> {
-    fs::create_dir_all(dir).map_err(|error| EmitError::Io {
+    crate::temp_files::prepare_dir(dir).map_err(|error| EmitError::Io {
         path: dir.to_path_buf(),
         error,
     })
@@ -886,6 +885,7 @@ fn emit_list(folder: &Path, list: &ValueList) -> Result<Vec<PathBuf>, EmitError>
 
 #[cfg(test)]
 mod tests {
+    use std::fs;
     use std::sync::Arc;
 
     use serde_json::json;

@@ -41,7 +41,7 @@
 //! is [`ImageIoError::Unsupported`].
 
 use std::fmt;
-use std::fs::{self, File, OpenOptions};
+use std::fs::{self, File};
 use std::io::{self, BufWriter, Cursor, Write};
 use std::panic::{self, AssertUnwindSafe};
 use std::path::{Path, PathBuf};
@@ -871,12 +871,14 @@ pub fn write_atomic_with(
         std::process::id(),
         TEMP_COUNTER.fetch_add(1, Ordering::Relaxed)
     ));
-    let file = OpenOptions::new().write(true).create_new(true).open(&tmp)?;
+    let file = crate::temp_files::create(&tmp)?;
     let result = fill_and_commit(file, &tmp, path, write);
     if result.is_err() {
         // Best effort: the original error is the one worth reporting.
         let _ = fs::remove_file(&tmp);
-    } else {
+    }
+    crate::temp_files::forget(&tmp);
+    if result.is_ok() {
         sync_dir(dir);
     }
     result

@@ -29,6 +29,7 @@ pub mod sequence_write;
 pub mod spec;
 pub mod stream;
 pub mod summary;
+pub mod temp_files;
 pub mod testing;
 pub mod timeline;
 pub mod types;

@@ -957,6 +957,280 @@ extern "C" fn host_free(ptr: *mut u8, size: usize, align: usize) {
     }
 }
 
+/// Reads fuzzer bytes as a sequence of choices; exhausted input reads as zeros.
+struct FuzzBytes<'a> {
+    data: &'a [u8],
+}
+
+impl<'a> FuzzBytes<'a> {
+    fn byte(&mut self) -> u8 {
+        match self.data.split_first() {
+            Some((&b, rest)) => {
+                self.data = rest;
+                b
+            }
+            None => 0,
+        }
+    }
+
+    fn take(&mut self, n: usize) -> &'a [u8] {
+        let n = n.min(self.data.len());
+        let (head, rest) = self.data.split_at(n);
+        self.data = rest;
+        head
+    }
+
+    fn u64(&mut self) -> u64 {
+        let mut b = [0u8; 8];
+        let src = self.take(8);
+        b[..src.len()].copy_from_slice(src);
+        u64::from_le_bytes(b)
+    }
+
+    /// Raw bytes as a descriptor string (possibly not UTF-8), or one of `known`.
+    fn string(&mut self, known: &[&'static str]) -> Str {
+        let choice = self.byte();
+        let pick = usize::from(choice >> 2);
+        if choice & 3 != 0 && !known.is_empty() {
+            return Str::new(known[pick % known.len()]);
+        }
+        let bytes = self.take(pick);
+        Str {
+            ptr: if bytes.is_empty() && choice & 0x80 != 0 {
+                std::ptr::null()
+            } else {
+                bytes.as_ptr()
+            },
+            len: bytes.len(),
+        }
+    }
+
+    /// A count for an array, with the array's storage; a few choices give a huge count with a
+    /// null pointer (which the reader must refuse without touching it).
+    fn count(&mut self) -> (usize, bool) {
+        let b = self.byte();
+        match b {
+            0xFF => (usize::MAX, true),
+            0xFE => (MAX_DESCRIPTOR_ITEMS + 1, true),
+            0xFD => (1, true),
+            _ => (usize::from(b % 4), false),
+        }
+    }
+}
+
+unsafe extern "C" fn fuzz_init_ok(_: *const HostServices, _: *mut Buffer) -> u32 {
+    abi::STATUS_OK
+}
+
+unsafe extern "C" fn fuzz_init_error(_: *const HostServices, _: *mut Buffer) -> u32 {
+    abi::STATUS_ERROR
+}
+
+unsafe extern "C" fn fuzz_create(
+    _: *const ParamArg,
+    _: usize,
+    _: *mut *mut c_void,
+    _: *mut Buffer,
+) -> u32 {
+    abi::STATUS_ERROR
+}
+
+unsafe extern "C" fn fuzz_run(
+    _: *const c_void,
+    _: *const abi::RunContext,
+    _: *const ValueView,
+    _: usize,
+    _: *mut OutValue,
+    _: usize,
+    _: *mut Buffer,
+) -> u32 {
+    abi::STATUS_ERROR
+}
+
+unsafe extern "C" fn fuzz_destroy(_: *mut c_void) {}
+
+/// Builds a plugin descriptor from arbitrary bytes — ABI version, fingerprint, names, operator
+/// ids, port names and types, parameter kinds, defaults, ranges and choices, array counts, null
+/// pointers — and registers it as [`load_plugin`] would after finding the symbol. Every pointer
+/// is valid for its count or null, so what is exercised is the descriptor *reader*: the checks a
+/// stale or mistaken plugin meets. For the fuzz targets and their corpus replay test.
+#[doc(hidden)]
+pub fn register_descriptor_bytes(
+    data: &[u8],
+    registry: &mut Registry,
+) -> Result<PluginInfo, PluginError> {
+    let mut input = FuzzBytes { data };
+    let header = input.byte();
+    let abi_version = if header & 0x0F == 0x0F {
+        u32::from(input.byte())
+    } else {
+        ABI_VERSION
+    };
+    let fingerprint = if header & 0x30 == 0x30 {
+        input.string(&[])
+    } else {
+        Str::new(BUILD_FINGERPRINT)
+    };
+    let name = input.string(&["fuzzed", ""]);
+    let sdk_version = input.string(&[ocellus_plugin::SDK_VERSION]);
+    let type_names: Vec<&'static str> = abi::PORT_TYPES.iter().map(|(n, _)| *n).collect();
+
+    // Storage the descriptor points into; built first, pointers taken after.
+    let (op_count, op_null) = input.count();
+    let real_ops = if op_null { 0 } else { op_count };
+    let mut ports: Vec<(Vec<abi::PortDescriptor>, usize, bool)> = Vec::new();
+    let mut params: Vec<(Vec<abi::ParamDescriptor>, usize, bool)> = Vec::new();
+    let mut choices: Vec<Vec<Str>> = Vec::new();
+    let mut op_fields = Vec::new();
+    for _ in 0..real_ops {
+        let id = input.string(&["fz.op", "fz.op2", "Bad", "fz."]);
+        let version = u32::from(input.byte());
+        let summary = input.string(&["summary"]);
+        let doc = input.string(&["doc"]);
+        let side_effects = input.byte() & 1 == 1;
+        let mut port_lists = [0usize; 2];
+        for slot in &mut port_lists {
+            let (count, null) = input.count();
+            let real = if null { 0 } else { count };
+            let list = (0..real)
+                .map(|_| abi::PortDescriptor {
+                    name: input.string(&["a", "b", ""]),
+                    ty: input.string(&type_names),
+                    doc: input.string(&["port"]),
+                    optional: input.byte() & 1 == 1,
+                })
+                .collect();
+            ports.push((list, count, null));
+            *slot = ports.len() - 1;
+        }
+        let (count, null) = input.count();
+        let real = if null { 0 } else { count };
+        let mut list = Vec::with_capacity(real);
+        for _ in 0..real {
+            let kind = u32::from(input.byte() % 8);
+            let default_kind = if input.byte() & 7 == 7 {
+                u32::from(input.byte() % 8)
+            } else {
+                kind
+            };
+            let default = abi::ParamValue {
+                kind: default_kind,
+                boolean: input.byte() & 1 == 1,
+                integer: input.u64() as i64,
+                float: f64::from_bits(input.u64()),
+                text: input.string(&["x", "y", ""]),
+            };
+            let (choice_count, choice_null) = input.count();
+            let real_choices = if choice_null { 0 } else { choice_count };
+            choices.push(
+                (0..real_choices)
+                    .map(|_| input.string(&["x", "y", "z", ""]))
+                    .collect(),
+            );
+            let flags = input.byte();
+            list.push((
+                abi::ParamDescriptor {
+                    name: input.string(&["p", "q", "Bad", ""]),
+                    kind,
+                    default,
+                    has_min: flags & 1 == 1,
+                    min: f64::from_bits(input.u64()),
+                    has_max: flags & 2 == 2,
+                    max: f64::from_bits(input.u64()),
+                    unit: input.string(&["px", ""]),
+                    doc: input.string(&["param"]),
+                    choices: std::ptr::null(),
+                    choice_count,
+                },
+                choices.len() - 1,
+                choice_null,
+            ));
+        }
+        params.push((Vec::new(), count, null));
+        let param_slot = params.len() - 1;
+        op_fields.push((
+            id,
+            version,
+            summary,
+            doc,
+            side_effects,
+            port_lists,
+            param_slot,
+            list,
+        ));
+    }
+    let init: abi::InitFn = if header & 0x40 != 0 {
+        fuzz_init_error
+    } else {
+        fuzz_init_ok
+    };
+
+    // Now that no vector grows any more, point into them.
+    let mut ops = Vec::with_capacity(op_fields.len());
+    for (id, version, summary, doc, side_effects, port_lists, param_slot, list) in op_fields {
+        let built: Vec<abi::ParamDescriptor> = list
+            .into_iter()
+            .map(|(mut p, choice_slot, null)| {
+                if !null && p.choice_count > 0 {
+                    p.choices = choices[choice_slot].as_ptr();
+                }
+                p
+            })
+            .collect();
+        params[param_slot].0 = built;
+        let pointer = |slot: usize| {
+            let (list, count, null) = &ports[slot];
+            let ptr = if *null || *count == 0 {
+                std::ptr::null()
+            } else {
+                list.as_ptr()
+            };
+            (ptr, *count)
+        };
+        let (inputs, input_count) = pointer(port_lists[0]);
+        let (outputs, output_count) = pointer(port_lists[1]);
+        let (param_list, param_count, param_null) = &params[param_slot];
+        ops.push(abi::OpDescriptor {
+            id,
+            version,
+            summary,
+            doc,
+            inputs,
+            input_count,
+            outputs,
+            output_count,
+            params: if *param_null || *param_count == 0 {
+                std::ptr::null()
+            } else {
+                param_list.as_ptr()
+            },
+            param_count: *param_count,
+            side_effects,
+            create: fuzz_create,
+            run: fuzz_run,
+            destroy: fuzz_destroy,
+        });
+    }
+    let descriptor = abi::PluginDescriptor {
+        abi_version,
+        sdk_version,
+        fingerprint,
+        name,
+        ops: if op_null || ops.is_empty() {
+            std::ptr::null()
+        } else {
+            ops.as_ptr()
+        },
+        op_count,
+        init,
+    };
+    // SAFETY: the descriptor is a v1 layout whose every pointer is null or points into `data`,
+    // `ops`, `ports`, `params` or `choices` with exactly its count of entries, all alive until
+    // this call returns; nothing registered keeps a pointer into them (names are copied), and the
+    // registered operators' functions are the static ones above.
+    unsafe { register(&descriptor, PathBuf::from("fuzz.so"), registry) }
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used, clippy::expect_used)] // test code

@@ -128,7 +128,8 @@ pub struct AnimationWriter {
 impl Drop for AnimationWriter {
     fn drop(&mut self) {
         if let Some(temp) = self.temp.take() {
-            let _ = std::fs::remove_file(temp);
+            let _ = std::fs::remove_file(&temp);
+            crate::temp_files::forget(&temp);
         }
     }
 }
@@ -188,11 +189,7 @@ impl AnimationWriter {
             std::process::id(),
             COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
         ));
-        let file = std::fs::OpenOptions::new()
-            .write(true)
-            .create_new(true)
-            .open(&temp)
-            .map_err(|e| self.write_error(e))?;
+        let file = crate::temp_files::create(&temp).map_err(|e| self.write_error(e))?;
         self.temp = Some(temp);
         Ok(file)
     }
@@ -400,11 +397,12 @@ impl AnimationWriter {
             .temp
             .take()
             .ok_or_else(|| self.write_error("temp file missing"))?;
-        if let Err(e) = std::fs::rename(&temp, &self.path) {
+        let renamed = std::fs::rename(&temp, &self.path);
+        if renamed.is_err() {
             let _ = std::fs::remove_file(&temp);
-            return Err(self.write_error(e));
         }
-        Ok(())
+        crate::temp_files::forget(&temp);
+        renamed.map_err(|e| self.write_error(e))
     }
 
     fn apng_header<W: std::io::Write>(
@@ -628,8 +626,10 @@ impl FrameEmitter {
             let temp = self
                 .dir
                 .join(format!(".{name}.jsonl.{}.part", std::process::id()));
+            // Left over only by a run killed outright; a new run replaces it.
+            let _ = std::fs::remove_file(&temp);
             let file =
-                std::fs::File::create(&temp).map_err(|e| format!("{}: {e}", temp.display()))?;
+                crate::temp_files::create(&temp).map_err(|e| format!("{}: {e}", temp.display()))?;
             self.lines.insert(
                 name.to_string(),
                 JsonLines {
@@ -679,12 +679,13 @@ impl FrameEmitter {
                 .map_err(|e| e.error().to_string())
                 .and_then(|f| f.sync_all().map_err(|e| e.to_string()))
                 .and_then(|()| std::fs::rename(&temp, &path).map_err(|e| e.to_string()));
+            if done.is_err() {
+                let _ = std::fs::remove_file(&temp);
+            }
+            crate::temp_files::forget(&temp);
             match done {
                 Ok(()) => self.written.push(path),
-                Err(e) => {
-                    let _ = std::fs::remove_file(&temp);
-                    failed.push(format!("{}: {e}", path.display()));
-                }
+                Err(e) => failed.push(format!("{}: {e}", path.display())),
             }
         }
         if failed.is_empty() {
@@ -699,6 +700,7 @@ impl Drop for FrameEmitter {
     fn drop(&mut self) {
         for lines in self.lines.values() {
             let _ = std::fs::remove_file(&lines.temp);
+            crate::temp_files::forget(&lines.temp);
         }
     }
 }

@@ -9,6 +9,8 @@ pub mod capture;
 pub mod describe;
 pub mod detect;
 pub mod filter;
+#[doc(hidden)]
+pub mod fuzz;
 pub mod geometry;
 pub mod io;
 pub mod learn;
