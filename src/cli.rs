@@ -33,6 +33,20 @@ pub struct Cli {
     /// Load no plugin at all: neither `--plugin`, `OCELLUS_PLUGIN_PATH` nor a graph's `plugins`.
     #[arg(long = "no-plugins", global = true, conflicts_with = "plugin")]
     pub no_plugins: bool,
+    /// Largest image a decoder accepts, in pixels (width × height), checked against the file's
+    /// header before any pixel is decoded.
+    #[arg(long, value_name = "PIXELS", global = true, help_heading = "Limits", default_value_t = ocellus_engine::limits::Limits::DEFAULT_MAX_IMAGE_PIXELS,
+          value_parser = clap::value_parser!(u64).range(1..))]
+    pub max_image_pixels: u64,
+    /// Largest input file read and largest decoded image, in bytes (`4096`, `512M`, `4G`).
+    #[arg(long, value_name = "BYTES", global = true, help_heading = "Limits", default_value = "4G",
+          value_parser = ocellus_engine::limits::parse_bytes)]
+    pub max_alloc_bytes: u64,
+    /// Most elements a file may declare (vertices, faces, points, observations) and a node may
+    /// output in one list.
+    #[arg(long, value_name = "N", global = true, help_heading = "Limits", default_value_t = ocellus_engine::limits::Limits::DEFAULT_MAX_LIST_LEN,
+          value_parser = clap::value_parser!(u64).range(1..))]
+    pub max_list_len: u64,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -136,6 +150,11 @@ impl RunArgs {
 
 /// Runs a parsed command line.
 pub fn dispatch(cli: Cli) -> ExitCode {
+    ocellus_engine::limits::set(ocellus_engine::limits::Limits {
+        max_image_pixels: cli.max_image_pixels,
+        max_alloc_bytes: cli.max_alloc_bytes,
+        max_list_len: cli.max_list_len,
+    });
     let mut registry = match builtin_registry() {
         Ok(r) => r,
         Err(code) => return code,

@@ -153,3 +153,113 @@ fn hostile_headers_are_clear_errors_without_allocating_what_they_claim() {
     assert!(peak < 100 << 20, "peak resident memory {} MB", peak >> 20);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Runs `ocellus run GRAPH ARGS` on a one-node graph; returns (success, stderr).
+fn run_graph(dir: &Path, name: &str, graph_text: &str, args: &[&str]) -> (bool, String) {
+    let graph = dir.join(format!("{name}.ron"));
+    std::fs::write(&graph, graph_text).unwrap();
+    let out_dir = dir.join(format!("out_{name}"));
+    let mut all = vec![
+        "run",
+        graph.to_str().unwrap(),
+        "--emit",
+        out_dir.to_str().unwrap(),
+    ];
+    all.extend_from_slice(args);
+    let out = ocellus(&all);
+    assert!(out.status.code().is_some(), "{name}: killed by a signal");
+    let err = stderr(&out);
+    assert!(!err.contains("panicked"), "{name}: {err}");
+    if !out.status.success() {
+        let emitted = std::fs::read_dir(&out_dir).map(|d| d.count()).unwrap_or(0);
+        assert_eq!(emitted, 0, "{name}: a failed run wrote files");
+    }
+    (out.status.success(), err)
+}
+
+fn reader_graph(op: &str, file: &Path, port: &str) -> String {
+    format!(
+        "Graph(nodes: {{ \"read\": (op: \"{op}\", params: (path: {:?})) }}, \
+         outputs: {{ \"out\": \"read.{port}\" }})",
+        file.display().to_string()
+    )
+}
+
+#[test]
+fn limits_are_set_from_the_command_line_and_name_their_flag() {
+    let dir = temp_dir("limit-flags");
+    let png = dir.join("card.png");
+    let image = Image::from_u8(64, 64, Channels::Gray, vec![128; 64 * 64]).unwrap();
+    ocellus_engine::image_io::write_image(&png, &image).unwrap();
+    let ply = dir.join("tetra.ply");
+    std::fs::write(
+        &ply,
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n\
+         property float z\nelement face 4\nproperty list uchar int vertex_indices\nend_header\n\
+         0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n",
+    )
+    .unwrap();
+    let image_graph = reader_graph("io.read_image", &png, "image");
+    let mesh_graph = reader_graph("io.read_mesh", &ply, "mesh");
+
+    // Pixels: 64 × 64 = 4096.
+    let (ok, err) = run_graph(
+        &dir,
+        "pixels_low",
+        &image_graph,
+        &["--max-image-pixels", "4095"],
+    );
+    assert!(
+        !ok && err.contains("64×64") && err.contains("4095"),
+        "{err}"
+    );
+    let (ok, err) = run_graph(
+        &dir,
+        "pixels_ok",
+        &image_graph,
+        &["--max-image-pixels", "4096"],
+    );
+    assert!(ok, "{err}");
+
+    // Bytes: the file itself is over the limit.
+    let (ok, err) = run_graph(&dir, "bytes_low", &mesh_graph, &["--max-alloc-bytes", "64"]);
+    assert!(
+        !ok && err.contains("--max-alloc-bytes") && err.contains("tetra.ply"),
+        "{err}"
+    );
+    let (ok, err) = run_graph(&dir, "bytes_ok", &mesh_graph, &["--max-alloc-bytes", "1K"]);
+    assert!(ok, "{err}");
+
+    // A device that never ends and reports no size stops at the limit.
+    let zero_ply = dir.join("zero.ply");
+    std::os::unix::fs::symlink("/dev/zero", &zero_ply).unwrap();
+    let zero = reader_graph("io.read_mesh", &zero_ply, "mesh");
+    let (ok, err) = run_graph(&dir, "zero", &zero, &["--max-alloc-bytes", "1M"]);
+    assert!(!ok && err.contains("over the limit of 1048576"), "{err}");
+
+    // Elements a file declares.
+    let (ok, err) = run_graph(&dir, "list_low", &mesh_graph, &["--max-list-len", "3"]);
+    assert!(
+        !ok && err.contains("4 vertices") && err.contains("--max-list-len"),
+        "{err}"
+    );
+    let (ok, err) = run_graph(&dir, "list_ok", &mesh_graph, &["--max-list-len", "4"]);
+    assert!(ok, "{err}");
+
+    // Elements a node outputs in one list.
+    let clip = "Graph(nodes: { \"clip\": (op: \"capture.moving_shapes\", \
+        params: (width: 16, height: 12, frames: 6, size_px: 4)) }, \
+        outputs: { \"frames\": \"clip.frames\" })";
+    let (ok, err) = run_graph(&dir, "clip_low", clip, &["--batch", "--max-list-len", "5"]);
+    assert!(
+        !ok && err.contains("clip") && err.contains("--max-list-len"),
+        "{err}"
+    );
+    let (ok, err) = run_graph(&dir, "clip_ok", clip, &["--batch", "--max-list-len", "6"]);
+    assert!(ok, "{err}");
+
+    // Bad values are usage errors.
+    let (ok, err) = run_graph(&dir, "bad_unit", &mesh_graph, &["--max-alloc-bytes", "3X"]);
+    assert!(!ok && err.contains("unknown unit"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -747,6 +747,7 @@ fn run_task<'s>(scope: &rayon::Scope<'s>, state: &'s State<'s>, i: usize) {
         if let Ok(mut e) = state.elapsed[i].lock() {
             *e = started.elapsed();
         }
+        let outcome = outcome.and_then(|values| check_list_lengths(node, values));
         match outcome {
             Ok(values) => {
                 let values: Arc<[Value]> = values.into();
@@ -892,6 +893,34 @@ pub(crate) fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
     } else {
         "unknown panic".to_string()
     }
+}
+
+/// Refuses a result holding a list longer than the run's `--max-list-len` (lists of lists
+/// count each level), naming the output port.
+fn check_list_lengths(node: &Node, values: Vec<Value>) -> Result<Vec<Value>, OpError> {
+    fn longest(value: &Value) -> usize {
+        match value {
+            Value::List(list) => list
+                .items
+                .iter()
+                .map(longest)
+                .max()
+                .unwrap_or(0)
+                .max(list.items.len()),
+            _ => 0,
+        }
+    }
+    for (value, spec) in values.iter().zip(&node.info.outputs) {
+        let n = longest(value);
+        if n > 0 {
+            crate::limits::check_count(
+                &format!("elements in a list on output `{}`", spec.name),
+                n as u64,
+            )
+            .map_err(OpError::failed)?;
+        }
+    }
+    Ok(values)
 }
 
 /// Runs one node's operator: once, or once per list element for a mapped node.

@@ -84,10 +84,13 @@ impl DecodeLimits {
 }
 
 impl Default for DecodeLimits {
+    /// The run's limits ([`crate::limits::get`]; by default [`Self::DEFAULT_MAX_PIXELS`] and
+    /// [`Self::DEFAULT_MAX_ALLOC_BYTES`]).
     fn default() -> Self {
+        let run = crate::limits::get();
         DecodeLimits {
-            max_pixels: Self::DEFAULT_MAX_PIXELS,
-            max_alloc_bytes: Self::DEFAULT_MAX_ALLOC_BYTES,
+            max_pixels: run.max_image_pixels,
+            max_alloc_bytes: run.max_alloc_bytes,
         }
     }
 }
@@ -323,7 +326,7 @@ fn detect_by_extension(path: &Path) -> Option<Detected> {
 /// Reads and decodes an image file. The format comes from the content, with the extension as a
 /// fallback; see the [module docs](self) for how stored layouts map to [`Image`].
 pub fn read_image(path: &Path, limits: &DecodeLimits) -> Result<Image, ImageIoError> {
-    let bytes = fs::read(path).map_err(|error| ImageIoError::Io {
+    let bytes = crate::limits::read_file(path).map_err(|error| ImageIoError::Io {
         path: path.to_path_buf(),
         error,
     })?;

@@ -19,6 +19,7 @@ pub mod exec;
 mod exr_io;
 pub mod graph;
 pub mod image_io;
+pub mod limits;
 pub mod mesh_write;
 pub mod op;
 pub mod params;

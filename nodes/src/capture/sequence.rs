@@ -149,7 +149,8 @@ impl Operator for Sequence {
         let files = self.selected()?;
         let mut all = Vec::with_capacity(files.len() * 64);
         for path in &files {
-            let bytes = std::fs::read(path).map_err(|e| OpError::io(path, e))?;
+            let bytes =
+                ocellus_engine::limits::read_file(path).map_err(|e| OpError::io(path, e))?;
             all.extend_from_slice(path.as_os_str().as_encoded_bytes());
             all.push(0);
             all.extend_from_slice(&ocellus_engine::cache::content_hash(&bytes));

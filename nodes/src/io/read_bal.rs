@@ -114,6 +114,13 @@ pub fn parse_bal(text: &str) -> Result<BalFile, String> {
     )?;
     // Every number takes at least one byte and a separator: do not trust a header that
     // promises more (it would only make us allocate).
+    for (what, n) in [
+        ("cameras", n_cams),
+        ("points", n_pts),
+        ("observations", n_obs),
+    ] {
+        ocellus_engine::limits::check_count(what, n as u64).map_err(|e| format!("line 1: {e}"))?;
+    }
     let needed = 4 * n_obs + 9 * n_cams + 3 * n_pts;
     if needed > text.len() {
         return Err(format!(
@@ -249,7 +256,7 @@ ocellus_engine::params! {
 
 /// Reads and parses a BAL file.
 pub fn read_bal(path: &Path) -> Result<BalFile, OpError> {
-    let text = std::fs::read_to_string(path).map_err(|e| OpError::io(path, e))?;
+    let text = ocellus_engine::limits::read_text(path).map_err(|e| OpError::io(path, e))?;
     parse_bal(&text).map_err(|e| OpError::failed(format!("{}: {e}", path.display())))
 }
 
@@ -314,8 +321,8 @@ impl Operator for ReadBal {
 
     /// The file's contents decide the result, so they are part of the cache key.
     fn fingerprint(&self) -> Result<Vec<u8>, OpError> {
-        let bytes =
-            std::fs::read(&self.params.path).map_err(|e| OpError::io(&self.params.path, e))?;
+        let bytes = ocellus_engine::limits::read_file(&self.params.path)
+            .map_err(|e| OpError::io(&self.params.path, e))?;
         Ok(ocellus_engine::cache::content_hash(&bytes).to_vec())
     }
 }

@@ -23,7 +23,7 @@ ocellus_engine::params! {
 
 /// Reads and parses a camera file; errors name the file.
 pub fn read_camera(path: &Path) -> Result<Camera, OpError> {
-    let text = std::fs::read_to_string(path).map_err(|e| OpError::io(path, e))?;
+    let text = ocellus_engine::limits::read_text(path).map_err(|e| OpError::io(path, e))?;
     camera_from_json(&text).map_err(|e| OpError::failed(format!("{}: {e}", path.display())))
 }
 
@@ -79,8 +79,8 @@ impl Operator for ReadCamera {
 
     /// The file's contents decide the result, so they are part of the cache key.
     fn fingerprint(&self) -> Result<Vec<u8>, OpError> {
-        let bytes =
-            std::fs::read(&self.params.path).map_err(|e| OpError::io(&self.params.path, e))?;
+        let bytes = ocellus_engine::limits::read_file(&self.params.path)
+            .map_err(|e| OpError::io(&self.params.path, e))?;
         Ok(ocellus_engine::cache::content_hash(&bytes).to_vec())
     }
 }

@@ -352,7 +352,7 @@ pub fn parse_points(
 pub fn read_colmap(folder: &Path) -> Result<Reconstruction, OpError> {
     let read = |name: &str| -> Result<(String, String), OpError> {
         let path = folder.join(name);
-        let text = std::fs::read_to_string(&path).map_err(|e| OpError::io(&path, e))?;
+        let text = ocellus_engine::limits::read_text(&path).map_err(|e| OpError::io(&path, e))?;
         Ok((path.display().to_string(), text))
     };
     let (cameras_file, cameras_text) = read("cameras.txt")?;
@@ -443,7 +443,8 @@ impl Operator for ReadColmap {
         let mut all = Vec::new();
         for name in ["cameras.txt", "images.txt", "points3D.txt"] {
             let path = self.params.path.join(name);
-            let bytes = std::fs::read(&path).map_err(|e| OpError::io(&path, e))?;
+            let bytes =
+                ocellus_engine::limits::read_file(&path).map_err(|e| OpError::io(&path, e))?;
             all.extend_from_slice(&ocellus_engine::cache::content_hash(&bytes));
         }
         Ok(ocellus_engine::cache::content_hash(&all).to_vec())

@@ -107,7 +107,7 @@ pub fn parse_correspondences(text: &str) -> Result<CorrespondenceFile, String> {
 
 /// Reads and parses a correspondence file.
 pub fn read_correspondences(path: &Path) -> Result<CorrespondenceFile, OpError> {
-    let text = std::fs::read_to_string(path).map_err(|e| OpError::io(path, e))?;
+    let text = ocellus_engine::limits::read_text(path).map_err(|e| OpError::io(path, e))?;
     parse_correspondences(&text).map_err(|e| OpError::failed(format!("{}: {e}", path.display())))
 }
 
@@ -189,8 +189,8 @@ impl Operator for ReadCorrespondences {
 
     /// The file's contents decide the result, so they are part of the cache key.
     fn fingerprint(&self) -> Result<Vec<u8>, OpError> {
-        let bytes =
-            std::fs::read(&self.params.path).map_err(|e| OpError::io(&self.params.path, e))?;
+        let bytes = ocellus_engine::limits::read_file(&self.params.path)
+            .map_err(|e| OpError::io(&self.params.path, e))?;
         Ok(ocellus_engine::cache::content_hash(&bytes).to_vec())
     }
 }

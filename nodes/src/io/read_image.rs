@@ -13,7 +13,7 @@ ocellus_engine::params! {
         /// The image file; relative paths resolve against the graph file's folder.
         path: PathBuf = PathBuf::new(),
         /// Largest image accepted, in pixels (a guard against decompression bombs: the header is
-        /// checked before any pixel is decoded).
+        /// checked before any pixel is decoded). The run's `--max-image-pixels` caps it too.
         max_pixels: u64 = 1 << 28 => [min = 1],
     }
 }
@@ -26,9 +26,10 @@ pub struct ReadImage {
 
 impl Operator for ReadImage {
     fn run(&self, _ctx: &RunContext, _inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
+        let run = DecodeLimits::default();
         let limits = DecodeLimits {
-            max_pixels: self.params.max_pixels,
-            ..DecodeLimits::default()
+            max_pixels: self.params.max_pixels.min(run.max_pixels),
+            ..run
         };
         let image =
             read_image(&self.params.path, &limits).map_err(|e| OpError::failed(e.to_string()))?;
@@ -37,8 +38,8 @@ impl Operator for ReadImage {
 
     /// The file's contents decide the result, so they are part of the cache key.
     fn fingerprint(&self) -> Result<Vec<u8>, OpError> {
-        let bytes =
-            std::fs::read(&self.params.path).map_err(|e| OpError::io(&self.params.path, e))?;
+        let bytes = ocellus_engine::limits::read_file(&self.params.path)
+            .map_err(|e| OpError::io(&self.params.path, e))?;
         Ok(ocellus_engine::cache::content_hash(&bytes).to_vec())
     }
 }

@@ -185,7 +185,7 @@ pub enum MeshError {
         what: String,
     },
     /// More elements than a limit allows.
-    #[error("{at}: {count} {what} exceed the limit of {limit}")]
+    #[error("{at}: {count} {what} exceed the limit of {limit} (--max-list-len)")]
     TooMany {
         /// Where.
         at: Location,
@@ -1011,12 +1011,13 @@ fn parse_header(bytes: &[u8]) -> Result<Header, MeshError> {
                     "face" => (MAX_FACES, "faces"),
                     _ => (MAX_ELEMENT_RECORDS, "element records"),
                 };
-                if count > limit as u64 {
+                let limit = (limit as u64).min(ocellus_engine::limits::get().max_list_len);
+                if count > limit {
                     return Err(MeshError::TooMany {
                         at,
                         what,
                         count,
-                        limit: limit as u64,
+                        limit,
                     });
                 }
                 elements.push(Element {
@@ -1828,12 +1829,13 @@ fn parse_stl_binary(bytes: &[u8]) -> Result<Mesh, MeshError> {
             actual,
         });
     }
-    if count > MAX_TRIANGLES as u64 {
+    let limit = (MAX_TRIANGLES as u64).min(ocellus_engine::limits::get().max_list_len);
+    if count > limit {
         return Err(MeshError::TooMany {
             at: Location::Byte(80),
             what: "triangles",
             count,
-            limit: MAX_TRIANGLES as u64,
+            limit,
         });
     }
     // The size matched, so `count` records of 50 bytes follow.
@@ -2087,7 +2089,7 @@ impl MeshFormat {
 /// read lossily (only comments and names can hold other bytes).
 pub fn read_mesh(path: &Path) -> Result<Mesh, OpError> {
     let format = MeshFormat::from_path(path).map_err(|e| OpError::failed(e.to_string()))?;
-    let bytes = std::fs::read(path).map_err(|e| OpError::io(path, e))?;
+    let bytes = ocellus_engine::limits::read_file(path).map_err(|e| OpError::io(path, e))?;
     let mesh = match format {
         MeshFormat::Obj => parse_obj(&String::from_utf8_lossy(&bytes)),
         MeshFormat::Ply => parse_ply(&bytes),
@@ -2176,8 +2178,8 @@ impl Operator for ReadMesh {
 
     /// The file's contents decide the result, so they are part of the cache key.
     fn fingerprint(&self) -> Result<Vec<u8>, OpError> {
-        let bytes =
-            std::fs::read(&self.params.path).map_err(|e| OpError::io(&self.params.path, e))?;
+        let bytes = ocellus_engine::limits::read_file(&self.params.path)
+            .map_err(|e| OpError::io(&self.params.path, e))?;
         Ok(ocellus_engine::cache::content_hash(&bytes).to_vec())
     }
 }

@@ -48,7 +48,7 @@ pub fn parse_point_cloud(bytes: &[u8]) -> Result<PointCloud, super::read_mesh::M
 
 /// Reads and parses a PLY point cloud file.
 pub fn read_point_cloud(path: &Path) -> Result<PointCloud, OpError> {
-    let bytes = std::fs::read(path).map_err(|e| OpError::io(path, e))?;
+    let bytes = ocellus_engine::limits::read_file(path).map_err(|e| OpError::io(path, e))?;
     parse_point_cloud(&bytes).map_err(|e| OpError::failed(format!("{}: {e}", path.display())))
 }
 
@@ -124,8 +124,8 @@ impl Operator for ReadPointCloud {
 
     /// The file's contents decide the result, so they are part of the cache key.
     fn fingerprint(&self) -> Result<Vec<u8>, OpError> {
-        let bytes =
-            std::fs::read(&self.params.path).map_err(|e| OpError::io(&self.params.path, e))?;
+        let bytes = ocellus_engine::limits::read_file(&self.params.path)
+            .map_err(|e| OpError::io(&self.params.path, e))?;
         Ok(ocellus_engine::cache::content_hash(&bytes).to_vec())
     }
 }

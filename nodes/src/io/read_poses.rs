@@ -249,7 +249,7 @@ Example:
 impl Operator for ReadPoses {
     fn run(&self, _ctx: &RunContext, _inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
         let path = &self.params.path;
-        let text = std::fs::read_to_string(path).map_err(|e| OpError::io(path, e))?;
+        let text = ocellus_engine::limits::read_text(path).map_err(|e| OpError::io(path, e))?;
         let parsed = parse_par(&text, &path.display().to_string()).map_err(OpError::failed)?;
         let (mut cameras, mut poses, mut names) = (Vec::new(), Vec::new(), Vec::new());
         for c in parsed {
@@ -273,7 +273,7 @@ impl Operator for ReadPoses {
     /// files' sizes, which are read at run time).
     fn fingerprint(&self) -> Result<Vec<u8>, OpError> {
         let path = &self.params.path;
-        let bytes = std::fs::read(path).map_err(|e| OpError::io(path, e))?;
+        let bytes = ocellus_engine::limits::read_file(path).map_err(|e| OpError::io(path, e))?;
         Ok(ocellus_engine::cache::content_hash(&bytes).to_vec())
     }
 }

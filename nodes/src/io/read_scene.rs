@@ -1032,7 +1032,7 @@ fn referenced_files(src: &str, path: &Path) -> Vec<PathBuf> {
 
 /// Reads and parses a scene file.
 pub fn read_scene(path: &Path) -> Result<LoadedScene, OpError> {
-    let src = std::fs::read_to_string(path).map_err(|e| OpError::io(path, e))?;
+    let src = ocellus_engine::limits::read_text(path).map_err(|e| OpError::io(path, e))?;
     parse_scene(&src, path).map_err(OpError::failed)
 }
 
@@ -1135,12 +1135,12 @@ impl Operator for ReadScene {
     /// The scene file and every file it reads decide the result.
     fn fingerprint(&self) -> Result<Vec<u8>, OpError> {
         let path = &self.params.path;
-        let src = std::fs::read(path).map_err(|e| OpError::io(path, e))?;
+        let src = ocellus_engine::limits::read_file(path).map_err(|e| OpError::io(path, e))?;
         let text = String::from_utf8_lossy(&src);
         let mut all = src.clone();
         // The files named inside; a scene that does not parse fails in `run` with its message.
         for f in &referenced_files(&text, path) {
-            let bytes = std::fs::read(f).map_err(|e| OpError::io(f, e))?;
+            let bytes = ocellus_engine::limits::read_file(f).map_err(|e| OpError::io(f, e))?;
             all.extend_from_slice(&ocellus_engine::cache::content_hash(&bytes));
         }
         Ok(ocellus_engine::cache::content_hash(&all).to_vec())

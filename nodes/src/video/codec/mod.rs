@@ -471,7 +471,8 @@ impl Operator for ReadBitstream {
                 format!("is {len} bytes, more than the 1 GiB limit"),
             ));
         }
-        let bytes = std::fs::read(&self.path).map_err(|e| OpError::io(&self.path, e))?;
+        let bytes = ocellus_engine::limits::read_file(&self.path)
+            .map_err(|e| OpError::io(&self.path, e))?;
         Ok(Outputs::new().with("bitstream", bytes_value(&bytes)?))
     }
 }
