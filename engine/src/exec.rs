@@ -929,6 +929,19 @@ pub fn run_node(
     ctx: &RunContext,
     inputs: &[Option<Value>],
 ) -> Result<Vec<Value>, OpError> {
+    // The NaN/Inf policy: no non-finite geometric value reaches an operator that has not said
+    // it accepts one (RELIABILITY.md).
+    for (value, spec) in inputs.iter().zip(&node.info.inputs) {
+        if let Some(value) = value
+            && !spec.non_finite
+            && let Some(at) = value.non_finite_at()
+        {
+            return Err(OpError::input(
+                &spec.name,
+                format!("{at} is not finite (NaN or infinity); this input needs finite values"),
+            ));
+        }
+    }
     if !node.is_mapped() {
         let outputs = node.op.run(ctx, &Inputs::new(&node.info.inputs, inputs))?;
         return collect_outputs(node, outputs, false);

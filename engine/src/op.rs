@@ -28,6 +28,10 @@ pub struct PortSpec {
     /// (the stream section's `feedback`), delivered with [`FrameSource::feed`] before each
     /// frame after the first. It is never wired in `inputs`; a batch run leaves it unset.
     pub feedback: bool,
+    /// Inputs only: the operator accepts NaN and infinities in a geometric value on this port
+    /// (see [`Value::non_finite_at`](crate::value::Value::non_finite_at)); by default the
+    /// scheduler refuses them before the operator runs, naming the node and the element.
+    pub non_finite: bool,
 }
 
 impl PortSpec {
@@ -40,7 +44,15 @@ impl PortSpec {
             optional: false,
             per_frame: false,
             feedback: false,
+            non_finite: false,
         }
+    }
+
+    /// Marks an input that accepts non-finite geometric values (an operator that cleans them
+    /// out, say); see [`PortSpec::non_finite`].
+    pub fn accepts_non_finite(mut self) -> PortSpec {
+        self.non_finite = true;
+        self
     }
 
     /// Marks an optional input of a frame source as a feedback port (see

@@ -1224,7 +1224,92 @@ pub enum Value {
     List(Arc<ValueList>),
 }
 
+/// The index of the first entry of `items` with a non-finite component.
+fn first_bad<T>(items: &[T], finite: impl Fn(&T) -> bool) -> Option<usize> {
+    items.iter().position(|x| !finite(x))
+}
+
+fn all_finite<const N: usize, F: Into<f64> + Copy>(v: &[F; N]) -> bool {
+    v.iter().all(|&x| x.into().is_finite())
+}
+
 impl Value {
+    /// Where a geometric value holds a NaN or an infinity, described for an error message
+    /// (`"point 17"`, `"element 2: camera 1's parameters"`), or `None` when it is finite or not
+    /// geometric. Geometric values are keypoints, matches, matrices, cameras, poses, 2-D points,
+    /// point clouds (positions, normals), reconstructions (cameras, poses, 2-D and 3-D points)
+    /// and meshes (positions, normals, uvs, tangents), and lists of them. Images, scalars and
+    /// metrics are not: depth maps use +inf for "no surface", and a PSNR of identical images
+    /// is +inf.
+    pub fn non_finite_at(&self) -> Option<String> {
+        let at = |what: &str, i: Option<usize>| i.map(|i| format!("{what} {i}"));
+        match self {
+            Value::Keypoints(k) => at(
+                "keypoint",
+                first_bad(k, |k| {
+                    [k.x, k.y, k.size, k.angle, k.response]
+                        .iter()
+                        .all(|v| v.is_finite())
+                }),
+            ),
+            Value::Matches(m) => at("match", first_bad(m, |m| m.distance.is_finite())),
+            Value::Matrix(m) => at("matrix entry", first_bad(&m.data, |x| x.is_finite())),
+            Value::Camera(c) => {
+                first_bad(&c.params, |x| x.is_finite()).map(|i| format!("camera parameter {i}"))
+            }
+            Value::Pose(p) => (!(all_finite(&p.rotation) && all_finite(&p.translation)))
+                .then(|| "the pose".to_string()),
+            Value::Points2D(p) => at("point", first_bad(p, all_finite)),
+            Value::PointCloud(c) => {
+                at("point", first_bad(&c.positions, all_finite)).or_else(|| {
+                    c.normals
+                        .as_ref()
+                        .and_then(|n| at("normal", first_bad(n, all_finite)))
+                })
+            }
+            Value::Reconstruction(r) => {
+                for (id, camera) in &r.cameras {
+                    if camera.params.iter().any(|x| !x.is_finite()) {
+                        return Some(format!("camera {id}'s parameters"));
+                    }
+                }
+                for image in &r.images {
+                    let pose = &image.camera_from_world;
+                    if !(all_finite(&pose.rotation) && all_finite(&pose.translation)) {
+                        return Some(format!("image {}'s pose", image.id));
+                    }
+                    if let Some(i) = first_bad(&image.points2d, |(p, _)| all_finite(p)) {
+                        return Some(format!("image {}'s 2-D point {i}", image.id));
+                    }
+                }
+                first_bad(&r.points, |p| all_finite(&p.position))
+                    .map(|i| format!("3-D point {}", r.points[i].id))
+            }
+            Value::Mesh(m) => at("vertex", first_bad(&m.positions, all_finite))
+                .or_else(|| {
+                    m.normals
+                        .as_ref()
+                        .and_then(|n| at("normal", first_bad(n, all_finite)))
+                })
+                .or_else(|| {
+                    m.uvs
+                        .as_ref()
+                        .and_then(|n| at("uv", first_bad(n, all_finite)))
+                })
+                .or_else(|| {
+                    m.tangents
+                        .as_ref()
+                        .and_then(|n| at("tangent", first_bad(n, all_finite)))
+                }),
+            Value::List(list) => list
+                .items
+                .iter()
+                .enumerate()
+                .find_map(|(k, item)| item.non_finite_at().map(|w| format!("element {k}: {w}"))),
+            _ => None,
+        }
+    }
+
     /// Wraps an image.
     pub fn image(image: Image) -> Value {
         Value::Image(Arc::new(image))
