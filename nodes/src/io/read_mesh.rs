@@ -185,7 +185,7 @@ pub enum MeshError {
         what: String,
     },
     /// More elements than a limit allows.
-    #[error("{at}: {count} {what} exceed the limit of {limit} (--max-list-len)")]
+    #[error("{at}: {count} {what} exceed the limit of {limit}{}", limit_flag(*.limit))]
     TooMany {
         /// Where.
         at: Location,
@@ -2181,6 +2181,16 @@ impl Operator for ReadMesh {
         let bytes = ocellus_engine::limits::read_file(&self.params.path)
             .map_err(|e| OpError::io(&self.params.path, e))?;
         Ok(ocellus_engine::cache::content_hash(&bytes).to_vec())
+    }
+}
+
+/// Names the command-line flag when the run's `--max-list-len` is the limit that was hit (the
+/// readers' own maxima are fixed).
+fn limit_flag(limit: u64) -> &'static str {
+    if limit == ocellus_engine::limits::get().max_list_len {
+        " (--max-list-len)"
+    } else {
+        ""
     }
 }
 
