@@ -35,9 +35,9 @@ fn main() -> ExitCode {
     }
 }
 
-/// On SIGINT, SIGTERM or SIGHUP, removes the temp files of the writes in flight and exits with
-/// 128 + the signal number, as a shell reports a signal: outputs already renamed into place are
-/// complete, and nothing partial is left (see `ocellus_engine::temp_files`).
+/// On SIGINT, SIGTERM or SIGHUP, removes the temp files of the writes in flight, then ends the
+/// process by that signal: outputs already renamed into place are complete, and nothing partial
+/// is left (see `ocellus_engine::temp_files`).
 fn remove_partial_files_on_interrupt() {
     #[cfg(unix)]
     {
@@ -53,7 +53,11 @@ fn remove_partial_files_on_interrupt() {
             .spawn(move || {
                 if let Some(signal) = signals.forever().next() {
                     eprintln!("\ninterrupted (signal {signal}); removing partial files");
-                    ocellus_engine::temp_files::remove_all_and_exit(128 + signal);
+                    let _closed = ocellus_engine::temp_files::close_and_remove_all();
+                    // End by the signal itself, so a shell loop or `make` sees an interrupted
+                    // child and stops too; exit 128 + signal where that is impossible.
+                    let _ = signal_hook::low_level::emulate_default_handler(signal);
+                    std::process::exit(128 + signal);
                 }
             });
         if spawned.is_err() {

@@ -210,7 +210,7 @@ fn limits_are_set_from_the_command_line_and_name_their_flag() {
         &["--max-image-pixels", "4095"],
     );
     assert!(
-        !ok && err.contains("64×64") && err.contains("4095"),
+        !ok && err.contains("64×64") && err.contains("4095 pixels (--max-image-pixels)"),
         "{err}"
     );
     let (ok, err) = run_graph(

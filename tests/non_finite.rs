@@ -127,3 +127,59 @@ fn finite_points_pass_the_same_check() {
     let report = run(&GRAPH.replace("RIGHT", "test.good_points"));
     assert!(report.failures.is_empty(), "{:?}", report.failures);
 }
+
+/// A 6 × 2 track with a missing (NaN) third row, as a detector reports a missed frame.
+struct Measurements;
+
+impl Operator for Measurements {
+    fn run(&self, _: &RunContext, _: &Inputs<'_>) -> Result<Outputs, OpError> {
+        let mut data: Vec<f64> = (0..6)
+            .flat_map(|t| [10.0 + 3.0 * f64::from(t), 20.0])
+            .collect();
+        data[4] = f64::NAN;
+        data[5] = f64::NAN;
+        let m = ocellus_engine::value::Matrix::new(6, 2, data).unwrap();
+        Ok(Outputs::new().with("m", Value::Matrix(Arc::new(m))))
+    }
+}
+
+impl Op for Measurements {
+    type Params = NoParams;
+    const ID: &'static str = "test.measurements";
+    const SUMMARY: &'static str = "A track with a gap.";
+    const DOC: &'static str = "A track with a gap.";
+    fn inputs() -> Vec<PortSpec> {
+        Vec::new()
+    }
+    fn outputs() -> Vec<PortSpec> {
+        vec![PortSpec::new("m", PortType::Matrix, "measurements")]
+    }
+    fn new(_: NoParams) -> Result<Self, String> {
+        Ok(Measurements)
+    }
+}
+
+/// Matrices are not geometric values: NaN marks a missing measurement, and the Kalman filter
+/// (whose documented input this is) runs through the scheduler and bridges the gap.
+#[test]
+fn a_matrix_with_missing_rows_reaches_the_kalman_filter() {
+    let mut registry = ocellus_nodes::builtin_registry().unwrap();
+    registry.register::<Measurements>().unwrap();
+    let text = r#"(
+        nodes: {
+            "track": (op: "test.measurements"),
+            "kf": (op: "video.kalman_filter", inputs: { "measurements": "track.m" }),
+        },
+        outputs: { "positions": "kf.positions" },
+    )"#;
+    let source = SourceFile::new("kalman.ron", None, text.to_string());
+    let graph = load_source(&registry, &source, &[]).unwrap();
+    let report = ocellus_engine::run(&graph, &RunOptions::default()).unwrap();
+    assert!(report.failures.is_empty(), "{:?}", report.failures);
+    let Some((_, Value::Matrix(positions))) = report.outputs.iter().find(|(n, _)| n == "positions")
+    else {
+        panic!("no positions");
+    };
+    // The missing frame is estimated, not left NaN.
+    assert!(positions.data[4].is_finite() && positions.data[5].is_finite());
+}

@@ -923,14 +923,9 @@ fn check_list_lengths(node: &Node, values: Vec<Value>) -> Result<Vec<Value>, OpE
     Ok(values)
 }
 
-/// Runs one node's operator: once, or once per list element for a mapped node.
-pub fn run_node(
-    node: &Node,
-    ctx: &RunContext,
-    inputs: &[Option<Value>],
-) -> Result<Vec<Value>, OpError> {
-    // The NaN/Inf policy: no non-finite geometric value reaches an operator that has not said
-    // it accepts one (RELIABILITY.md).
+/// The NaN/Inf policy: no non-finite geometric value reaches an operator that has not said it
+/// accepts one (RELIABILITY.md). Called before every operator call, batch or streamed.
+pub fn check_finite_inputs(node: &Node, inputs: &[Option<Value>]) -> Result<(), OpError> {
     for (value, spec) in inputs.iter().zip(&node.info.inputs) {
         if let Some(value) = value
             && !spec.non_finite
@@ -942,6 +937,16 @@ pub fn run_node(
             ));
         }
     }
+    Ok(())
+}
+
+/// Runs one node's operator: once, or once per list element for a mapped node.
+pub fn run_node(
+    node: &Node,
+    ctx: &RunContext,
+    inputs: &[Option<Value>],
+) -> Result<Vec<Value>, OpError> {
+    check_finite_inputs(node, inputs)?;
     if !node.is_mapped() {
         let outputs = node.op.run(ctx, &Inputs::new(&node.info.inputs, inputs))?;
         return collect_outputs(node, outputs, false);

@@ -107,7 +107,15 @@ pub enum Limit {
 impl fmt::Display for Limit {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
+            // Name the flag to raise when the run's limit is the one that applied (a node's
+            // own `max_pixels` can be lower).
+            Limit::Pixels(n) if *n == crate::limits::get().max_image_pixels => {
+                write!(f, "{n} pixels (--max-image-pixels)")
+            }
             Limit::Pixels(n) => write!(f, "{n} pixels"),
+            Limit::Bytes(n) if *n == crate::limits::get().max_alloc_bytes => {
+                write!(f, "{n} bytes (--max-alloc-bytes)")
+            }
             Limit::Bytes(n) => write!(f, "{n} bytes"),
         }
     }
@@ -847,7 +855,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
 }
 
 /// Writes a file atomically: `write` streams the content (buffered) into a temp file in the
-/// target's directory, named `.{name}.{pid}.{counter}.tmp`; the file is flushed and synced, then
+/// target's directory, named `.{name}.{pid}.{counter}.ocellus.tmp`; the file is flushed and synced, then
 /// renamed over `path`. Readers see the old file or the complete new one, never a partial one. On
 /// any failure the temp file is removed and `path` is left as it was. The directory must exist.
 pub fn write_atomic_with(
@@ -870,7 +878,7 @@ pub fn write_atomic_with(
         .take(TEMP_NAME_MAX_CHARS)
         .collect();
     let tmp = dir.join(format!(
-        ".{short}.{}.{}.tmp",
+        ".{short}.{}.{}.ocellus.tmp",
         std::process::id(),
         TEMP_COUNTER.fetch_add(1, Ordering::Relaxed)
     ));

@@ -185,7 +185,7 @@ impl AnimationWriter {
             _ => PathBuf::from("."),
         };
         let temp = dir.join(format!(
-            ".{name}.{}.{}.part",
+            ".{name}.{}.{}.ocellus.part",
             std::process::id(),
             COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
         ));
@@ -625,7 +625,7 @@ impl FrameEmitter {
             let path = self.dir.join(format!("{name}.jsonl"));
             let temp = self
                 .dir
-                .join(format!(".{name}.jsonl.{}.part", std::process::id()));
+                .join(format!(".{name}.jsonl.{}.ocellus.part", std::process::id()));
             // Left over only by a run killed outright; a new run replaces it.
             let _ = std::fs::remove_file(&temp);
             let file =

@@ -1788,6 +1788,10 @@ impl Stage<'_> {
                     };
                 }
             }
+            if let Err(e) = crate::exec::check_finite_inputs(node, &inputs) {
+                self.fail(Some(packet.index), e.to_string());
+                return;
+            }
             let ctx = ctx_for(self.index, Some(packet.index));
             let t0 = Instant::now();
             let result = guarded(self.pool, || {

@@ -4,15 +4,18 @@
 //! complete ([`crate::image_io::write_atomic_with`], the animation and JSON-lines writers), so a
 //! reader never sees a partial file under the target's name. What an interruption could leave is
 //! the temp file itself. Each one is created through [`create`], which records it, and dropped
-//! from the record by [`forget`] once renamed or removed. On SIGINT/SIGTERM the CLI calls
-//! [`remove_all_and_exit`]: it closes the record (a write that starts afterwards fails instead of
-//! creating a file), removes every recorded temp file and ends the process. A rename racing with
-//! that removal either completed — the target is whole — or finds its temp file gone and changes
-//! nothing.
+//! from the record by [`forget`] once renamed or removed. On SIGINT, SIGTERM or SIGHUP the CLI
+//! calls [`close_and_remove_all`]: it closes the record (a write that starts afterwards blocks,
+//! then ends with the process), removes every recorded temp file, and the CLI then ends the
+//! process by the signal. A rename racing with that removal either completed — the target is
+//! whole — or finds its temp file gone and changes nothing.
 //!
 //! A process killed outright (SIGKILL, power loss) cannot clean up; its temp files are named
-//! `.{target}.{pid}.{n}.tmp` (or `.part`), and [`sweep_stale`] removes those whose process is
-//! gone the next time a run writes into the folder.
+//! `.{target}.{pid}.{n}.ocellus.tmp` (`.{target}.{pid}.{n}.ocellus.part` for animations,
+//! `.{target}.{pid}.ocellus.part` for JSON lines), and [`sweep_stale`] removes those whose
+//! process is gone the next time a run writes into the folder. Only names with the `.ocellus.`
+//! marker are considered, and liveness is judged on this host: a folder shared between machines
+//! (NFS) should not be written by runs on several hosts at once.
 
 use std::collections::BTreeSet;
 use std::fs::{File, OpenOptions};
@@ -37,16 +40,13 @@ fn record() -> MutexGuard<'static, Record> {
         .unwrap_or_else(|poisoned| poisoned.into_inner())
 }
 
-/// Creates a new temp file (it must not exist) and records it. Fails with
-/// [`io::ErrorKind::Interrupted`] once the process is shutting down (not reachable in practice:
-/// [`remove_all_and_exit`] keeps the record locked until the process is gone).
+/// Creates a new temp file (it must not exist) and records it. Fails once the process is
+/// shutting down (not reachable in practice: [`close_and_remove_all`]'s guard keeps the record
+/// locked until the process is gone).
 pub fn create(path: &Path) -> io::Result<File> {
     let mut record = record();
     if record.closed {
-        return Err(io::Error::new(
-            io::ErrorKind::Interrupted,
-            "the run was interrupted",
-        ));
+        return Err(io::Error::other("the run was interrupted"));
     }
     let file = OpenOptions::new().write(true).create_new(true).open(path)?;
     record.paths.insert(path.to_path_buf());
@@ -63,27 +63,33 @@ pub fn in_flight() -> usize {
     record().paths.len()
 }
 
-/// Closes the record, removes every temp file in it and exits with `code`. Called from the
-/// CLI's signal thread. The lock is held until the process ends, so no temp file can be created
-/// after the sweep (a writer that tries blocks, then ends with the process).
-pub fn remove_all_and_exit(code: i32) -> ! {
+/// The record, closed and locked: while this lives no temp file can be created or renamed.
+/// Hold it until the process has ended.
+pub struct ClosedRecord {
+    _guard: MutexGuard<'static, Record>,
+}
+
+/// Closes the record and removes every temp file in it; returns the record still locked, so no
+/// temp file can be created after the sweep (a writer that tries blocks, then ends with the
+/// process). Called from the CLI's signal thread, which then ends the process.
+pub fn close_and_remove_all() -> ClosedRecord {
     let mut record = record();
     record.closed = true;
     for path in std::mem::take(&mut record.paths) {
         let _ = std::fs::remove_file(&path);
     }
-    std::process::exit(code)
+    ClosedRecord { _guard: record }
 }
 
-/// The process id in a temp file name `.{target}.{pid}.{n}.tmp` / `.part` (also the JSON-lines
-/// form `.{target}.{pid}.part`), if it is one.
+/// The process id in a temp file name `.{target}.{pid}.{n}.ocellus.tmp` / `.ocellus.part` (also
+/// the JSON-lines form `.{target}.{pid}.ocellus.part`), if it is one of ours.
 fn temp_owner(name: &str) -> Option<u32> {
     if !name.starts_with('.') {
         return None;
     }
     let stem = name
-        .strip_suffix(".tmp")
-        .or_else(|| name.strip_suffix(".part"))?;
+        .strip_suffix(".ocellus.tmp")
+        .or_else(|| name.strip_suffix(".ocellus.part"))?;
     let mut fields = stem.rsplit('.');
     let last = fields.next()?;
     let before = fields.next()?;
@@ -143,12 +149,15 @@ mod tests {
 
     #[test]
     fn temp_names_give_their_owner() {
-        assert_eq!(temp_owner(".out.png.1234.7.tmp"), Some(1234));
-        assert_eq!(temp_owner(".walk.gif.99.0.part"), Some(99));
-        assert_eq!(temp_owner(".metrics.jsonl.4321.part"), Some(4321));
-        assert_eq!(temp_owner("out.png.1234.7.tmp"), None);
+        assert_eq!(temp_owner(".out.png.1234.7.ocellus.tmp"), Some(1234));
+        assert_eq!(temp_owner(".walk.gif.99.0.ocellus.part"), Some(99));
+        assert_eq!(temp_owner(".metrics.jsonl.4321.ocellus.part"), Some(4321));
+        assert_eq!(temp_owner("out.png.1234.7.ocellus.tmp"), None);
         assert_eq!(temp_owner(".hidden"), None);
-        assert_eq!(temp_owner(".a.b.tmp"), None);
+        assert_eq!(temp_owner(".a.b.ocellus.tmp"), None);
+        // Another program's temp files, even shaped like ours, are not ours.
+        assert_eq!(temp_owner(".x.12345.tmp"), None);
+        assert_eq!(temp_owner(".out.png.1234.7.tmp"), None);
     }
 
     #[test]
@@ -157,10 +166,11 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
         // A pid above the kernel's maximum (2^22) cannot be running.
-        let dead = dir.join(".a.png.4194305.0.tmp");
-        let live = dir.join(format!(".b.png.{}.0.tmp", std::process::id()));
+        let dead = dir.join(".a.png.4194305.0.ocellus.tmp");
+        let live = dir.join(format!(".b.png.{}.0.ocellus.tmp", std::process::id()));
+        let foreign = dir.join(".c.4194305.tmp");
         let target = dir.join("a.png");
-        for p in [&dead, &live, &target] {
+        for p in [&dead, &live, &foreign, &target] {
             std::fs::write(p, b"x").unwrap();
         }
         let removed = sweep_stale(&dir);
@@ -168,7 +178,7 @@ mod tests {
             assert_eq!(removed, 1);
             assert!(!dead.exists());
         }
-        assert!(live.exists() && target.exists());
+        assert!(live.exists() && foreign.exists() && target.exists());
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

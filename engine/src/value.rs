@@ -1236,11 +1236,12 @@ fn all_finite<const N: usize, F: Into<f64> + Copy>(v: &[F; N]) -> bool {
 impl Value {
     /// Where a geometric value holds a NaN or an infinity, described for an error message
     /// (`"point 17"`, `"element 2: camera 1's parameters"`), or `None` when it is finite or not
-    /// geometric. Geometric values are keypoints, matches, matrices, cameras, poses, 2-D points,
-    /// point clouds (positions, normals), reconstructions (cameras, poses, 2-D and 3-D points)
-    /// and meshes (positions, normals, uvs, tangents), and lists of them. Images, scalars and
-    /// metrics are not: depth maps use +inf for "no surface", and a PSNR of identical images
-    /// is +inf.
+    /// geometric. Geometric values are keypoints, matches, cameras, poses, 2-D points, point
+    /// clouds (positions, normals), reconstructions (cameras, poses, 2-D and 3-D points) and
+    /// meshes (positions, normals, uvs, tangents), and lists of them. Images, matrices, scalars
+    /// and metrics are not: depth maps use +inf for "no surface", a matrix of measurements
+    /// marks a missing row with NaN (`video.kalman_filter`), and a PSNR of identical images is
+    /// +inf.
     pub fn non_finite_at(&self) -> Option<String> {
         let at = |what: &str, i: Option<usize>| i.map(|i| format!("{what} {i}"));
         match self {
@@ -1253,7 +1254,6 @@ impl Value {
                 }),
             ),
             Value::Matches(m) => at("match", first_bad(m, |m| m.distance.is_finite())),
-            Value::Matrix(m) => at("matrix entry", first_bad(&m.data, |x| x.is_finite())),
             Value::Camera(c) => {
                 first_bad(&c.params, |x| x.is_finite()).map(|i| format!("camera parameter {i}"))
             }

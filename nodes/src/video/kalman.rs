@@ -98,6 +98,7 @@ Example:
                 "Instead of `measurements`: per frame, the measured position as the first \
                  point (no point or NaN: missing). Streams frame by frame.",
             )
+            .accepts_non_finite()
             .optional()
             .per_frame(),
         ]
