@@ -77,10 +77,10 @@ pub struct DecodeLimits {
 }
 
 impl DecodeLimits {
-    /// Default pixel limit: 2²⁸ ≈ 268 M pixels (e.g. 16384 × 16384).
-    pub const DEFAULT_MAX_PIXELS: u64 = 1 << 28;
-    /// Default allocation limit: 4 GiB.
-    pub const DEFAULT_MAX_ALLOC_BYTES: u64 = 4 << 30;
+    /// Default pixel limit: [`crate::limits::Limits::DEFAULT_MAX_IMAGE_PIXELS`].
+    pub const DEFAULT_MAX_PIXELS: u64 = crate::limits::Limits::DEFAULT_MAX_IMAGE_PIXELS;
+    /// Default allocation limit: [`crate::limits::Limits::DEFAULT_MAX_ALLOC_BYTES`].
+    pub const DEFAULT_MAX_ALLOC_BYTES: u64 = crate::limits::Limits::DEFAULT_MAX_ALLOC_BYTES;
 }
 
 impl Default for DecodeLimits {

@@ -60,20 +60,25 @@ pub fn get() -> Limits {
     *LIMITS.read().unwrap_or_else(|p| p.into_inner())
 }
 
-/// Reads a whole file, refusing one over [`Limits::max_alloc_bytes`] — by its size before
-/// reading, and by what was read for devices and pipes, whose size is unknown.
+/// Reads a whole file, refusing one over [`Limits::max_alloc_bytes`]; see [`read_capped`].
 pub fn read_file(path: &Path) -> io::Result<Vec<u8>> {
-    let limit = get().max_alloc_bytes;
+    read_capped(path, get().max_alloc_bytes, "--max-alloc-bytes")
+}
+
+/// Reads a whole file of at most `limit` bytes — checked by its size before reading, and by
+/// what was read for devices and pipes, which report no size (`/dev/zero` would otherwise never
+/// end). The error names `source`, where the limit comes from.
+pub fn read_capped(path: &Path, limit: u64, source: &str) -> io::Result<Vec<u8>> {
     let file = std::fs::File::open(path)?;
     let declared = file.metadata().map(|m| m.len()).unwrap_or(0);
     if declared > limit {
-        return Err(too_large(declared, limit));
+        return Err(too_large(declared, limit, source));
     }
     let capacity = usize::try_from(declared).unwrap_or(0);
     let mut bytes = Vec::with_capacity(capacity);
     file.take(limit.saturating_add(1)).read_to_end(&mut bytes)?;
     if bytes.len() as u64 > limit {
-        return Err(too_large(bytes.len() as u64, limit));
+        return Err(too_large(bytes.len() as u64, limit, source));
     }
     Ok(bytes)
 }
@@ -91,10 +96,10 @@ pub fn read_text(path: &Path) -> io::Result<String> {
     })
 }
 
-fn too_large(bytes: u64, limit: u64) -> io::Error {
+fn too_large(bytes: u64, limit: u64, source: &str) -> io::Error {
     io::Error::new(
         io::ErrorKind::FileTooLarge,
-        format!("the file is {bytes} bytes, over the limit of {limit} (--max-alloc-bytes)"),
+        format!("the file is {bytes} bytes, over the limit of {limit} ({source})"),
     )
 }
 
@@ -152,6 +157,27 @@ mod tests {
         assert!(parse_bytes("-1").is_err());
         assert!(parse_bytes("3X").is_err());
         assert!(parse_bytes("99999999999T").is_err());
+    }
+
+    #[test]
+    fn a_device_that_reports_no_size_stops_at_the_cap() {
+        let zero = Path::new("/dev/zero");
+        if !zero.exists() {
+            return;
+        }
+        let err = read_capped(zero, 1024, "test cap").unwrap_err();
+        assert!(
+            err.to_string()
+                .contains("over the limit of 1024 (test cap)"),
+            "{err}"
+        );
+        // The graph loader (and so an include naming a device) goes through the same cap.
+        let diagnostic = crate::resolve::read_source(zero, "zero.ron").unwrap_err();
+        assert!(
+            diagnostic.message.contains("graph files"),
+            "{}",
+            diagnostic.message
+        );
     }
 
     #[test]

@@ -135,45 +135,13 @@ fn shift(v: Spanned<RonValue>, offset: usize) -> Spanned<RonValue> {
 
 /// Reads a graph file as text, reporting unreadable or non-UTF-8 files as diagnostics.
 pub fn read_source(path: &Path, display_name: &str) -> Result<Arc<SourceFile>, Box<Diagnostic>> {
-    let meta = std::fs::metadata(path).map_err(|e| {
-        Box::new(Diagnostic::bare(
-            Code::Io,
-            format!("cannot read graph file `{display_name}`: {e}"),
-        ))
-    })?;
-    if meta.len() > MAX_GRAPH_FILE_BYTES {
-        return Err(Box::new(Diagnostic::bare(
-            Code::Io,
-            format!(
-                "graph file `{display_name}` is {} bytes; the limit is {MAX_GRAPH_FILE_BYTES}",
-                meta.len()
-            ),
-        )));
-    }
-    // Read through a cap as well: a device or a file growing while read (`/dev/zero`, a FIFO)
-    // reports no length in its metadata.
-    let mut bytes = Vec::new();
-    std::fs::File::open(path)
-        .and_then(|f| {
-            std::io::Read::read_to_end(
-                &mut std::io::Read::take(f, MAX_GRAPH_FILE_BYTES + 1),
-                &mut bytes,
-            )
-        })
-        .map_err(|e| {
+    let bytes =
+        crate::limits::read_capped(path, MAX_GRAPH_FILE_BYTES, "graph files").map_err(|e| {
             Box::new(Diagnostic::bare(
                 Code::Io,
                 format!("cannot read graph file `{display_name}`: {e}"),
             ))
         })?;
-    if bytes.len() as u64 > MAX_GRAPH_FILE_BYTES {
-        return Err(Box::new(Diagnostic::bare(
-            Code::Io,
-            format!(
-                "graph file `{display_name}` is over the limit of {MAX_GRAPH_FILE_BYTES} bytes"
-            ),
-        )));
-    }
     match String::from_utf8(bytes) {
         Ok(text) => Ok(SourceFile::new(
             display_name,

@@ -58,11 +58,6 @@ pub fn forget(path: &Path) {
     record().paths.remove(path);
 }
 
-/// Temp files currently recorded.
-pub fn in_flight() -> usize {
-    record().paths.len()
-}
-
 /// The record, closed and locked: while this lives no temp file can be created or renamed.
 /// Hold it until the process has ended.
 pub struct ClosedRecord {
