@@ -129,6 +129,15 @@ pub struct RunArgs {
     /// reuse, output previews).
     #[arg(long, value_name = "FILE.html")]
     pub report: Option<PathBuf>,
+    /// Run the graph's list maps (per-image, per-pair work) as tasks on the Ray cluster at this
+    /// address (`127.0.0.1:6379`, `auto`). Needs Python with the `ocellus` package and Ray
+    /// (`$OCELLUS_PYTHON`, else `python3`). Finished elements are kept in `--cache DIR`/items
+    /// (default `~/.cache/ocellus/items`) and reused by the next run.
+    #[arg(long, value_name = "ADDRESS", help_heading = "Distributed")]
+    pub ray: Option<String>,
+    /// With `--ray`: list elements per task (0 = about 64 tasks per list map, up to 16 each).
+    #[arg(long, value_name = "N", default_value_t = 0, help_heading = "Distributed", requires = "ray")]
+    pub items_per_task: usize,
 }
 
 impl RunArgs {
@@ -409,6 +418,13 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
                 );
                 return ExitCode::from(EXIT_INVALID);
             }
+            if args.ray.is_some() {
+                eprintln!(
+                    "error: --ray distributes the list maps of a batch run; `{}` streams (add --batch)",
+                    args.graph.display()
+                );
+                return ExitCode::from(EXIT_INVALID);
+            }
             return crate::streaming::run_streamed(args, &graph, &spec, threads);
         }
         Ok(Some(spec)) if !spec.feedback.is_empty() => {
@@ -433,6 +449,13 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
         crate::animation::timeline(registry, &args.graph, &args.set),
         args.frame,
     ) {
+        (Ok(Some(_)), None) if args.ray.is_some() => {
+            eprintln!(
+                "error: --ray distributes the list maps of one run; `{}` is animated (add --frame N)",
+                args.graph.display()
+            );
+            return ExitCode::from(EXIT_INVALID);
+        }
         (Ok(Some(animated)), None) => {
             return crate::animation::run_animated(registry, args, &graph, &animated, threads);
         }
@@ -467,11 +490,29 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
             return ExitCode::from(EXIT_INVALID);
         }
     };
+    let driver = match &args.ray {
+        Some(address) => match crate::ray::RayDriver::start(address) {
+            Ok(d) => Some(Arc::new(d)),
+            Err(e) => {
+                eprintln!("error: {e}");
+                return ExitCode::from(EXIT_FAILED);
+            }
+        },
+        None => None,
+    };
     let mut reports = Vec::with_capacity(args.repeat as usize);
     for _ in 0..args.repeat {
         let progress = Progress::start();
+        let item_cache = if args.repeat > 1 {
+            None
+        } else {
+            crate::ray::item_cache(args.cache.as_deref())
+        };
         let options = RunOptions {
             progress: Some(progress.callback()),
+            distribution: driver
+                .as_ref()
+                .map(|d| d.distribution(args.items_per_task, item_cache)),
             ..args.options(threads)
         };
         let result = ocellus_engine::run(&graph, &options);
@@ -483,6 +524,9 @@ fn run(registry: &mut Registry, args: &RunArgs, plugins: Plugins) -> ExitCode {
                 return ExitCode::from(EXIT_INVALID);
             }
         }
+    }
+    if let Some(driver) = &driver {
+        driver.close();
     }
     let Some(last) = reports.last() else {
         return ExitCode::from(EXIT_INVALID);

@@ -5,6 +5,7 @@ mod cli;
 mod ops;
 mod plot;
 mod profile;
+mod ray;
 mod report;
 mod run_report;
 mod streaming;

@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use ocellus_engine::diag::suggest;
 use ocellus_engine::{OpInfo, ParamSpec, ParamValue, PortSpec, Registry};
-use serde_json::{Value as Json, json};
+use serde_json::Value as Json;
 
 /// Lists all operators, or one in full; `json` for machine-readable output.
 pub fn ops(registry: &Registry, op: Option<&str>, json: bool) -> ExitCode {
@@ -55,38 +55,9 @@ pub fn ops(registry: &Registry, op: Option<&str>, json: bool) -> ExitCode {
     ExitCode::SUCCESS
 }
 
-fn port_json(p: &PortSpec) -> Json {
-    json!({ "name": p.name, "type": p.ty.to_string(), "doc": p.doc, "optional": p.optional })
-}
-
-fn param_json(p: &ParamSpec) -> Json {
-    json!({
-        "name": p.name,
-        "type": p.ty.to_string(),
-        "default": serde_json::to_value(&p.default).unwrap_or(Json::Null),
-        "range": p.range_text(),
-        "min": p.min,
-        "min_exclusive": p.min_exclusive,
-        "max": p.max,
-        "unit": p.unit,
-        "doc": p.doc,
-    })
-}
-
-/// The JSON description of one operator.
+/// The JSON description of one operator (what `ocellus ops --json` prints for it).
 pub fn op_json(info: &OpInfo) -> Json {
-    json!({
-        "id": info.id,
-        "family": info.family(),
-        "version": info.version,
-        "summary": info.summary,
-        "doc": info.doc,
-        "origin": info.origin.to_string(),
-        "side_effects": info.side_effects,
-        "inputs": info.inputs.iter().map(port_json).collect::<Vec<_>>(),
-        "outputs": info.outputs.iter().map(port_json).collect::<Vec<_>>(),
-        "params": info.params.iter().map(param_json).collect::<Vec<_>>(),
-    })
+    ocellus_engine::reference::op_json(info)
 }
 
 fn default_text(p: &ParamSpec) -> String {

@@ -539,6 +539,7 @@ impl Page<'_> {
         html.push_str(&self.outputs_section());
         html.push_str(&self.nodes_section());
         html.push_str(&self.cache_section());
+        html.push_str(&self.distributed_section());
         html.push_str(&format!(
             "<footer>ocellus {} · a self-contained page: nothing here is loaded from elsewhere · \
              timings vary from run to run</footer>\n</main>\n</body>\n</html>\n",
@@ -947,6 +948,52 @@ impl Page<'_> {
             }
         }
         s.push_str("</section>\n");
+        s
+    }
+
+    /// `--ray`: each distributed list map (elements done, reused, tasks) and the per-worker
+    /// time table. Empty when nothing ran distributed.
+    fn distributed_section(&self) -> String {
+        let stages = &self.last.distributed;
+        if stages.is_empty() {
+            return String::new();
+        }
+        let mut s = String::from(
+            "<section>\n<h2>Distributed list maps</h2>\n<table class=\"nodes\">\n<thead><tr>\
+             <th>node</th><th>op</th><th>items</th><th>reused</th><th>tasks</th>\
+             <th>failed</th><th>wall</th><th>sent</th><th>received</th></tr></thead>\n<tbody>\n",
+        );
+        for st in stages {
+            s.push_str(&format!(
+                "<tr><td><code>{}</code></td><td>{}</td><td>{}</td><td>{}</td><td>{}</td>\
+                 <td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>\n",
+                escape(&st.node),
+                escape(&st.op),
+                st.items,
+                st.reused,
+                st.tasks,
+                st.failed_tasks,
+                render_ms(st.elapsed.as_secs_f64() * 1e3),
+                render_bytes(st.bytes_sent as u64),
+                render_bytes(st.bytes_received as u64)
+            ));
+        }
+        s.push_str("</tbody>\n</table>\n<h3>Per-worker time</h3>\n<table class=\"nodes\">\n\
+            <thead><tr><th>node</th><th>worker</th><th>tasks</th><th>items</th><th>busy</th>\
+            </tr></thead>\n<tbody>\n");
+        for st in stages {
+            for (worker, w) in &st.workers {
+                s.push_str(&format!(
+                    "<tr><td><code>{}</code></td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>\n",
+                    escape(&st.node),
+                    escape(worker),
+                    w.tasks,
+                    w.items,
+                    render_ms(w.busy_seconds * 1e3)
+                ));
+            }
+        }
+        s.push_str("</tbody>\n</table>\n</section>\n");
         s
     }
 

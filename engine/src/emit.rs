@@ -164,6 +164,36 @@ pub fn emit_value(dir: &Path, name: &str, value: &Value) -> Result<Vec<PathBuf>,
     }
 }
 
+/// The JSON that [`emit_value`] writes for `value` (without the trailing newline), for the
+/// values it writes as JSON; `None` for images, point clouds, meshes, reconstructions and lists.
+/// Language bindings return exactly what the CLI emits from this.
+pub fn json_text(value: &Value) -> Option<String> {
+    let text = match value {
+        Value::Matrix(m) => serde_json::to_string(&MatrixJson::from(&**m)),
+        Value::Scalar(x) => serde_json::to_string(x),
+        Value::Integer(i) => serde_json::to_string(i),
+        Value::Bool(b) => serde_json::to_string(b),
+        Value::Text(t) => serde_json::to_string(&**t),
+        Value::Metrics(m) => serde_json::to_string(&**m),
+        Value::Keypoints(k) => serde_json::to_string(&**k),
+        Value::Matches(m) => serde_json::to_string(&**m),
+        Value::Camera(c) => serde_json::to_string(&CameraJson::from(&**c)),
+        Value::Pose(p) => serde_json::to_string(&PoseJson::from(p)),
+        Value::Points2D(p) => serde_json::to_string(&**p),
+        Value::Descriptors(d) => serde_json::to_string(&DescriptorsJson::from(&**d)),
+        Value::Tracks(t) => serde_json::to_string(&**t),
+        Value::Animation(a) => serde_json::to_string(&**a),
+        Value::Scene(s) => serde_json::to_string(&SceneJson::from(&**s)),
+        Value::Bvh(b) => serde_json::to_string(&BvhJson::from(&**b)),
+        Value::Image(_)
+        | Value::PointCloud(_)
+        | Value::Mesh(_)
+        | Value::Reconstruction(_)
+        | Value::List(_) => return None,
+    };
+    text.ok()
+}
+
 /// Rejects names that are not a single, ordinary path component.
 fn check_name(name: &str) -> Result<(), EmitError> {
     let reason = if name.is_empty() {

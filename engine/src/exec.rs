@@ -60,6 +60,8 @@ pub struct RunOptions {
     /// downstream (their new results are stored as usual): what a parameter sweep times while
     /// the unchanged upstream comes from the cache. Unknown names are an error.
     pub recompute: Vec<String>,
+    /// Run distributable list maps as tasks elsewhere ([`crate::distribute`]).
+    pub distribution: Option<crate::distribute::Distribution>,
 }
 
 /// The caches a run reads and fills.
@@ -196,6 +198,8 @@ pub struct RunReport {
     pub peak_bytes: usize,
     /// Wall time of the whole run.
     pub elapsed: Duration,
+    /// Mapped nodes whose elements ran as distributed tasks, in the order they finished.
+    pub distributed: Vec<crate::distribute::StageStats>,
 }
 
 impl RunReport {
@@ -256,8 +260,16 @@ pub fn run(graph: &Graph, options: &RunOptions) -> Result<RunReport, RunError> {
         memory: options.memory_cache.as_deref(),
     };
     let plan = plan(graph, &options.outputs, &options.recompute, caches)?;
-    let mut report =
-        pool.install(|| execute(graph, &plan, caches, threads, options.progress.as_ref()));
+    let mut report = pool.install(|| {
+        execute(
+            graph,
+            &plan,
+            caches,
+            threads,
+            options.progress.as_ref(),
+            options.distribution.as_ref(),
+        )
+    });
     report.elapsed = start.elapsed();
     Ok(report)
 }
@@ -534,6 +546,8 @@ struct State<'a> {
     done: AtomicUsize,
     total: usize,
     progress: Option<&'a ProgressFn>,
+    distribution: Option<&'a crate::distribute::Distribution>,
+    distributed: Mutex<Vec<crate::distribute::StageStats>>,
 }
 
 fn execute(
@@ -542,6 +556,7 @@ fn execute(
     caches: Caches<'_>,
     threads: usize,
     progress: Option<&ProgressFn>,
+    distribution: Option<&crate::distribute::Distribution>,
 ) -> RunReport {
     let n = graph.nodes.len();
     let canonical = &plan.canonical;
@@ -607,6 +622,8 @@ fn execute(
         done: AtomicUsize::new(0),
         total: plan.run.iter().filter(|&&r| r).count(),
         progress,
+        distribution,
+        distributed: Mutex::new(Vec::new()),
     };
     state
         .peak_bytes
@@ -632,6 +649,7 @@ fn execute(
         failures,
         warnings,
         peak_bytes,
+        distributed,
         ..
     } = state;
     let status: Vec<NodeStatus> = status
@@ -686,6 +704,7 @@ fn execute(
         warnings: warnings.into_inner().unwrap_or_default(),
         peak_bytes: peak_bytes.into_inner(),
         elapsed: Duration::ZERO,
+        distributed: distributed.into_inner().unwrap_or_default(),
     }
 }
 
@@ -737,7 +756,12 @@ fn run_task<'s>(scope: &rayon::Scope<'s>, state: &'s State<'s>, i: usize) {
             element: None,
         };
         let started = Instant::now();
-        let outcome = catch_unwind(AssertUnwindSafe(|| run_node(node, &ctx, &inputs)))
+        let outcome = catch_unwind(AssertUnwindSafe(|| match state.distribution {
+            Some(d) if crate::distribute::distributable(node) => {
+                crate::distribute::run_mapped(node, &inputs, d, &state.distributed)
+            }
+            _ => run_node(node, &ctx, &inputs),
+        }))
             .unwrap_or_else(|payload| {
                 Err(OpError::failed(format!(
                     "operator panicked: {}",
@@ -951,7 +975,27 @@ pub fn run_node(
         let outputs = node.op.run(ctx, &Inputs::new(&node.info.inputs, inputs))?;
         return collect_outputs(node, outputs, false);
     }
-    // Mapped: every mapped input must be a list of the same length.
+    let n = mapped_len(node, inputs)?;
+    let per_element: Vec<Result<Vec<Value>, OpError>> = (0..n)
+        .into_par_iter()
+        .map(|k| run_element(node, ctx, inputs, k, k))
+        .collect();
+    let mut columns: Vec<Vec<Value>> = vec![Vec::with_capacity(n); node.info.outputs.len()];
+    for (k, result) in per_element.into_iter().enumerate() {
+        let values = result.map_err(|e| OpError::failed(format!("list element {k}: {e}")))?;
+        for (column, value) in columns.iter_mut().zip(values) {
+            column.push(value);
+        }
+    }
+    Ok(columns
+        .into_iter()
+        .zip(&node.info.outputs)
+        .map(|(items, spec)| Value::list(spec.ty.clone(), items))
+        .collect())
+}
+
+/// The length of a mapped node's lists: every mapped input must be a list, all of one length.
+pub(crate) fn mapped_len(node: &Node, inputs: &[Option<Value>]) -> Result<usize, OpError> {
     let mut len: Option<(usize, &str)> = None;
     for (edge, (value, spec)) in node.inputs.iter().zip(inputs.iter().zip(&node.info.inputs)) {
         if !edge.as_ref().is_some_and(|e| e.mapped) {
@@ -975,42 +1019,36 @@ pub fn run_node(
             Some(_) => {}
         }
     }
-    let n = len.map_or(0, |(n, _)| n);
-    let per_element: Vec<Result<Vec<Value>, OpError>> = (0..n)
-        .into_par_iter()
-        .map(|k| {
-            let element_inputs: Vec<Option<Value>> = node
-                .inputs
-                .iter()
-                .zip(inputs)
-                .map(|(edge, value)| match (edge, value) {
-                    (Some(e), Some(Value::List(list))) if e.mapped => list.items.get(k).cloned(),
-                    (_, v) => v.clone(),
-                })
-                .collect();
-            let element_ctx = RunContext {
-                element: Some(k),
-                ..ctx.clone()
-            };
-            let outputs = node.op.run(
-                &element_ctx,
-                &Inputs::new(&node.info.inputs, &element_inputs),
-            )?;
-            collect_outputs(node, outputs, true)
+    Ok(len.map_or(0, |(n, _)| n))
+}
+
+/// Runs a mapped node's operator on element `local` of its mapped lists, as list element
+/// `element` of the whole map (what the operator sees in [`RunContext::element`]).
+pub(crate) fn run_element(
+    node: &Node,
+    ctx: &RunContext,
+    inputs: &[Option<Value>],
+    local: usize,
+    element: usize,
+) -> Result<Vec<Value>, OpError> {
+    let element_inputs: Vec<Option<Value>> = node
+        .inputs
+        .iter()
+        .zip(inputs)
+        .map(|(edge, value)| match (edge, value) {
+            (Some(e), Some(Value::List(list))) if e.mapped => list.items.get(local).cloned(),
+            (_, v) => v.clone(),
         })
         .collect();
-    let mut columns: Vec<Vec<Value>> = vec![Vec::with_capacity(n); node.info.outputs.len()];
-    for (k, result) in per_element.into_iter().enumerate() {
-        let values = result.map_err(|e| OpError::failed(format!("list element {k}: {e}")))?;
-        for (column, value) in columns.iter_mut().zip(values) {
-            column.push(value);
-        }
-    }
-    Ok(columns
-        .into_iter()
-        .zip(&node.info.outputs)
-        .map(|(items, spec)| Value::list(spec.ty.clone(), items))
-        .collect())
+    let element_ctx = RunContext {
+        element: Some(element),
+        ..ctx.clone()
+    };
+    let outputs = node.op.run(
+        &element_ctx,
+        &Inputs::new(&node.info.inputs, &element_inputs),
+    )?;
+    collect_outputs(node, outputs, true)
 }
 
 /// Orders an operator's outputs by its declared ports, checking presence and types.

@@ -43,6 +43,7 @@ pub fn register_builtins(registry: &mut Registry) -> Result<(), RegistryError> {
     registry.register::<capture::moving_camera::MovingCamera>()?;
     registry.register::<capture::render::CaptureRender>()?;
     registry.register::<sfm::pairs::MatchPairs>()?;
+    registry.register::<sfm::pair_lists::PairLists>()?;
     registry.register::<sfm::tracks::TracksOp>()?;
     registry.register::<sfm::incremental::Incremental>()?;
     registry.register::<filter::grayscale::Grayscale>()?;

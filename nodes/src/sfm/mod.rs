@@ -5,6 +5,7 @@ pub mod align;
 pub mod dense;
 pub mod depth;
 pub mod incremental;
+pub mod pair_lists;
 pub mod pairs;
 pub mod stereo;
 pub mod tracks;
