@@ -22,6 +22,7 @@ const SNAPSHOTTED: &[&str] = &[
     "hull.ron",
     "learn.ron",
     "lines.ron",
+    "many_views.ron",
     "mesh.ron",
     "panorama.ron",
     "poisson.ron",
@@ -160,6 +161,11 @@ fn ransac_fundamental() {
 #[test]
 fn lines() {
     check_graph("lines.ron");
+}
+
+#[test]
+fn many_views() {
+    check_graph("many_views.ron");
 }
 
 #[test]

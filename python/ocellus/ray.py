@@ -29,7 +29,7 @@ from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tupl
 
 from . import Graph, _ocellus
 
-__all__ = ["run", "default_item_cache", "run_chunk", "submitter"]
+__all__ = ["run", "default_item_cache", "init_args", "run_chunk", "submitter"]
 
 #: What ``submit`` yields per finished task: (task index, ok, result bytes or error text,
 #: worker name, seconds the worker spent).
@@ -102,6 +102,17 @@ def submitter(max_retries: int = 3, num_cpus: float = 1) -> Callable[[Dict[str, 
     return submit
 
 
+def init_args(address: Optional[str], extra: Optional[Dict[str, Any]] = None) -> Dict[str, Any]:
+    """``ray.init`` arguments for ``address``: a loopback address keeps this driver on loopback
+    too (Ray would otherwise announce the machine's network address)."""
+    args: Dict[str, Any] = {"address": address}
+    host = (address or "").rsplit(":", 1)[0]
+    if host in ("127.0.0.1", "localhost") or host.startswith("127."):
+        args["_node_ip_address"] = "127.0.0.1"
+    args.update(extra or {})
+    return args
+
+
 def _print_progress(node: str, done: int, total: int) -> None:
     end = "\n" if done >= total else "\r"
     print(f"ocellus.ray: {node}: {done}/{total} items", end=end, file=sys.stderr, flush=True)
@@ -125,7 +136,8 @@ def run(
     this process already initialized, or starts a local one. ``items_per_task``: elements per
     task (0 picks about 64 tasks per map, up to 16 elements each). ``cache_dir``: node result
     cache, as in :meth:`Graph.run`. ``item_cache``: where finished elements are kept by content
-    key (``"default"`` is :func:`default_item_cache`, ``None`` keeps nothing). ``progress``:
+    key (``"default"``: ``cache_dir``/items, else :func:`default_item_cache`; ``None`` keeps
+    nothing). ``progress``:
     print ``items done/total`` per map to stderr, or a callback ``(node, done, total)``.
     ``max_retries``: Ray's retries of a task whose worker died. ``init``: extra
     ``ray.init`` arguments. The run's report, with each distributed map and its per-worker
@@ -135,9 +147,11 @@ def run(
     if not isinstance(graph, Graph):
         graph = Graph.load(graph)
     if not ray.is_initialized():
-        ray.init(address=address, **(init or {}))
+        ray.init(**init_args(address, init))
     if item_cache == "default":
-        item_cache = default_item_cache()
+        item_cache = (
+            os.path.join(os.fspath(cache_dir), "items") if cache_dir is not None else default_item_cache()
+        )
     callback = _print_progress if progress is True else (progress or None)
     return graph._run(
         outputs,

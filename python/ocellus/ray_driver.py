@@ -59,9 +59,9 @@ def main(argv: Optional[list] = None) -> int:
     try:
         import ray
 
-        from .ray import submitter
+        from .ray import init_args, submitter
 
-        ray.init(address=args.address, log_to_driver=False)
+        ray.init(**init_args(args.address, {"log_to_driver": False}))
         resources = ray.cluster_resources()
         submit = submitter(max_retries=args.max_retries)
     except Exception as e:  # cannot reach the cluster, Ray missing
