@@ -69,22 +69,34 @@ def run_chunk(payload: bytes) -> Tuple[bool, Union[bytes, str], str, float]:
     return ok, result, _worker_name(), time.perf_counter() - started
 
 
-def submitter(max_retries: int = 3, num_cpus: float = 1) -> Callable[[Dict[str, Any], List[bytes]], Iterator[TaskResult]]:
-    """A ``submit(stage, payloads)`` that sends every payload as a Ray task and yields results
-    as they finish (Ray must be initialized)."""
+def submitter(
+    max_retries: int = 3, num_cpus: float = 1, max_in_flight: Optional[int] = None
+) -> Callable[[Dict[str, Any], List[bytes]], Iterator[TaskResult]]:
+    """A ``submit(stage, payloads)`` that sends payloads as Ray tasks and yields results as
+    they finish (Ray must be initialized). At most ``max_in_flight`` tasks are submitted at
+    once (default: twice the cluster's CPUs), so payloads wait in this process, not in the
+    cluster's object store, and a worker that joins or leaves mid-run changes where the rest
+    go."""
     import ray
 
     remote = ray.remote(num_cpus=num_cpus, max_retries=max_retries)(run_chunk)
 
     def submit(stage: Dict[str, Any], payloads: List[bytes]) -> Iterator[TaskResult]:
-        refs = [remote.remote(p) for p in payloads]
-        index = {ref: i for i, ref in enumerate(refs)}
-        pending = list(refs)
+        limit = max_in_flight or max(2, int(2 * ray.cluster_resources().get("CPU", 1)))
+        index: Dict[Any, int] = {}
+        pending: List[Any] = []
+        next_task = 0
         try:
-            while pending:
+            while next_task < len(payloads) or pending:
+                while next_task < len(payloads) and len(pending) < limit:
+                    ref = remote.remote(payloads[next_task])
+                    payloads[next_task] = b""  # sent: free it here
+                    index[ref] = next_task
+                    pending.append(ref)
+                    next_task += 1
                 ready, pending = ray.wait(pending, num_returns=1)
                 for ref in ready:
-                    i = index[ref]
+                    i = index.pop(ref)
                     try:
                         ok, data, worker, seconds = ray.get(ref)
                     except Exception as e:  # retries exhausted, cluster gone

@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# The Python package's tests: a virtual environment in target/pyenv with maturin, NumPy, Ray and
+# pytest from PyPI, the wheel built from this checkout and installed into it (as a user would),
+# then pytest on python/tests (which also drives the CLI in target/debug: build it first, or set
+# OCELLUS_BIN). Usage: bash python/test.sh [pytest args]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+VENV=target/pyenv
+if [ ! -x "$VENV/bin/python" ]; then
+    "$PY" -m venv "$VENV"
+fi
+"$VENV/bin/python" -m pip install -q --disable-pip-version-check "maturin>=1.5,<2" "numpy>=1.21" "ray>=2.9" "pytest>=7"
+rm -rf target/wheels
+# The dev profile (optimised dependencies) shares the build with `cargo test`; release wheels
+# come from `maturin build --release`.
+"$VENV/bin/maturin" build -q -m python/Cargo.toml --profile dev -o target/wheels -i "$VENV/bin/python"
+"$VENV/bin/python" -m pip install -q --disable-pip-version-check --force-reinstall --no-deps target/wheels/ocellus-*.whl
+cargo build -q --bin ocellus
+# Run from python/tests so `import ocellus` is the installed wheel, not the source folder.
+cd python/tests
+exec "../../$VENV/bin/python" -m pytest -q -p no:cacheprovider "$@"
