@@ -136,7 +136,13 @@ pub struct RunArgs {
     #[arg(long, value_name = "ADDRESS", help_heading = "Distributed")]
     pub ray: Option<String>,
     /// With `--ray`: list elements per task (0 = about 64 tasks per list map, up to 16 each).
-    #[arg(long, value_name = "N", default_value_t = 0, help_heading = "Distributed", requires = "ray")]
+    #[arg(
+        long,
+        value_name = "N",
+        default_value_t = 0,
+        help_heading = "Distributed",
+        requires = "ray"
+    )]
     pub items_per_task: usize,
 }
 

@@ -978,9 +978,11 @@ impl Page<'_> {
                 render_bytes(st.bytes_received as u64)
             ));
         }
-        s.push_str("</tbody>\n</table>\n<h3>Per-worker time</h3>\n<table class=\"nodes\">\n\
+        s.push_str(
+            "</tbody>\n</table>\n<h3>Per-worker time</h3>\n<table class=\"nodes\">\n\
             <thead><tr><th>node</th><th>worker</th><th>tasks</th><th>items</th><th>busy</th>\
-            </tr></thead>\n<tbody>\n");
+            </tr></thead>\n<tbody>\n",
+        );
         for st in stages {
             for (worker, w) in &st.workers {
                 s.push_str(&format!(

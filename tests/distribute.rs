@@ -107,7 +107,11 @@ fn distributed_runs_are_byte_identical_to_local_for_any_chunking() {
     for items in [0, 1, 7] {
         let report = run(
             &graph,
-            Some(distribution(Arc::new(LocalRunner::new(registry())), items, None)),
+            Some(distribution(
+                Arc::new(LocalRunner::new(registry())),
+                items,
+                None,
+            )),
         );
         assert_eq!(encoded(&report), local, "{items} items per task");
         let features = stage(&report, "features");
@@ -131,7 +135,10 @@ fn a_rerun_after_a_failure_reuses_the_finished_elements() {
     let local = encoded(&run(&graph, None));
     let cache = temp_dir("distribute-rerun");
     // 5 elements per task; the cluster is lost after 4 of the 10 feature tasks.
-    let first = run(&graph, Some(distribution(flaky("features", Some(4)), 5, Some(&cache))));
+    let first = run(
+        &graph,
+        Some(distribution(flaky("features", Some(4)), 5, Some(&cache))),
+    );
     assert_eq!(first.failures.len(), 1, "{:?}", first.failures);
     assert_eq!(first.failures[0].node, "features");
     assert!(first.failures[0].message.contains("the cluster went away"));
@@ -221,7 +228,10 @@ fn the_worker_refuses_damaged_payloads_without_panicking() {
     // Every truncation is an error.
     let step = (payload.len() / 300).max(1);
     for cut in (0..payload.len()).step_by(step) {
-        assert!(run_task(&registry, &payload[..cut]).is_err(), "cut at {cut}");
+        assert!(
+            run_task(&registry, &payload[..cut]).is_err(),
+            "cut at {cut}"
+        );
     }
     // Flipped bytes in the header: an error or a result, never a panic.
     for at in 0..payload.len().min(400) {
@@ -252,7 +262,11 @@ fn only_builtin_maps_without_side_effects_are_distributed() {
     assert_eq!(mapped, vec!["detect"]);
     let report = run(
         &graph,
-        Some(distribution(Arc::new(LocalRunner::new(registry())), 0, None)),
+        Some(distribution(
+            Arc::new(LocalRunner::new(registry())),
+            0,
+            None,
+        )),
     );
     assert_eq!(report.distributed.len(), 1);
     assert_eq!(encoded(&report), encoded(&run(&graph, None)));

@@ -235,7 +235,11 @@ pub fn run_mapped(
             .runner
             .run(&stage, tasks, &mut |finished: TaskDone| {
                 let Some(chunk) = chunks.get(finished.task) else {
-                    return Err(format!("runner reported task {} of {}", finished.task, chunks.len()));
+                    return Err(format!(
+                        "runner reported task {} of {}",
+                        finished.task,
+                        chunks.len()
+                    ));
                 };
                 let worker = record.workers.entry(finished.worker.clone()).or_default();
                 worker.tasks += 1;
@@ -279,7 +283,10 @@ pub fn run_mapped(
         return Err(OpError::failed(first_failure.unwrap_or(message)));
     }
     if let Some(e) = store_errors.first() {
-        tracing::warn!("item cache: could not store an element of `{}`: {e}", node.name);
+        tracing::warn!(
+            "item cache: could not store an element of `{}`: {e}",
+            node.name
+        );
     }
 
     let mut columns: Vec<Vec<Value>> = vec![Vec::with_capacity(n); node.info.outputs.len()];
@@ -606,7 +613,11 @@ pub fn run_task(registry: &Registry, payload: &[u8]) -> Result<Vec<u8>, String> 
                 if *kind == INPUT_MAPPED {
                     match &value {
                         Value::List(list) if list.items.len() == elements.len() => {}
-                        _ => return Err("task payload: a mapped input is not the chunk's list".into()),
+                        _ => {
+                            return Err(
+                                "task payload: a mapped input is not the chunk's list".into()
+                            );
+                        }
                     }
                 }
                 inputs.push(Some(value));
@@ -621,7 +632,11 @@ pub fn run_task(registry: &Registry, payload: &[u8]) -> Result<Vec<u8>, String> 
     if !edges.iter().flatten().any(|e| e.mapped) {
         return Err("task payload maps over no input".into());
     }
-    let output_types = info.outputs.iter().map(|p| p.ty.clone().list_of()).collect();
+    let output_types = info
+        .outputs
+        .iter()
+        .map(|p| p.ty.clone().list_of())
+        .collect();
     let node = Node {
         name,
         info: Arc::new(info),
@@ -644,8 +659,7 @@ pub fn run_task(registry: &Registry, payload: &[u8]) -> Result<Vec<u8>, String> 
     let mut columns: Vec<Vec<Value>> =
         vec![Vec::with_capacity(elements.len()); node.info.outputs.len()];
     for (local, result) in per_element.into_iter().enumerate() {
-        let values =
-            result.map_err(|e| format!("list element {}: {e}", elements[local]))?;
+        let values = result.map_err(|e| format!("list element {}: {e}", elements[local]))?;
         for (column, value) in columns.iter_mut().zip(values) {
             column.push(value);
         }

@@ -762,12 +762,12 @@ fn run_task<'s>(scope: &rayon::Scope<'s>, state: &'s State<'s>, i: usize) {
             }
             _ => run_node(node, &ctx, &inputs),
         }))
-            .unwrap_or_else(|payload| {
-                Err(OpError::failed(format!(
-                    "operator panicked: {}",
-                    panic_message(payload.as_ref())
-                )))
-            });
+        .unwrap_or_else(|payload| {
+            Err(OpError::failed(format!(
+                "operator panicked: {}",
+                panic_message(payload.as_ref())
+            )))
+        });
         if let Ok(mut e) = state.elapsed[i].lock() {
             *e = started.elapsed();
         }

@@ -54,9 +54,8 @@ fn registry(plugins: &[PathBuf]) -> PyResult<Registry> {
     let mut registry = ocellus_nodes::builtin_registry()
         .map_err(|e| PyException::new_err(format!("operator registry: {e}")))?;
     for path in plugins {
-        ocellus_engine::load_plugin(path, &mut registry).map_err(|e| {
-            GraphError::new_err(format!("plugin {}: {e}", path.display()))
-        })?;
+        ocellus_engine::load_plugin(path, &mut registry)
+            .map_err(|e| GraphError::new_err(format!("plugin {}: {e}", path.display())))?;
     }
     Ok(registry)
 }
@@ -278,10 +277,7 @@ impl TaskRunner for PyRunner {
                 payloads.append(PyBytes::new(py, t)).map_err(py_err)?;
             }
             drop(tasks);
-            let results = self
-                .submit
-                .call1(py, (info, payloads))
-                .map_err(py_err)?;
+            let results = self.submit.call1(py, (info, payloads)).map_err(py_err)?;
             for item in results.bind(py).try_iter().map_err(py_err)? {
                 let item = item.map_err(py_err)?;
                 let (task, ok, data, worker, seconds): (
@@ -314,10 +310,9 @@ impl TaskRunner for PyRunner {
 #[pyfunction]
 fn run_task<'py>(py: Python<'py>, payload: &[u8]) -> PyResult<Bound<'py, PyBytes>> {
     let result = py.detach(|| {
-        static REGISTRY: std::sync::OnceLock<Result<Registry, String>> =
-            std::sync::OnceLock::new();
-        let registry = REGISTRY
-            .get_or_init(|| ocellus_nodes::builtin_registry().map_err(|e| e.to_string()));
+        static REGISTRY: std::sync::OnceLock<Result<Registry, String>> = std::sync::OnceLock::new();
+        let registry =
+            REGISTRY.get_or_init(|| ocellus_nodes::builtin_registry().map_err(|e| e.to_string()));
         match registry {
             Ok(r) => ocellus_engine::distribute::run_task(r, payload),
             Err(e) => Err(e.clone()),
@@ -359,7 +354,14 @@ fn flat_f32<const N: usize>(rows: &[[f32; N]]) -> Vec<u8> {
 fn json_tuple<'py>(py: Python<'py>, value: &Value) -> PyResult<Bound<'py, PyAny>> {
     let text = ocellus_engine::emit::json_text(value)
         .ok_or_else(|| PyException::new_err(format!("{} has no JSON form", value.port_type())))?;
-    Ok(PyTuple::new(py, ["json".into_pyobject(py)?.into_any(), text.into_pyobject(py)?.into_any()])?.into_any())
+    Ok(PyTuple::new(
+        py,
+        [
+            "json".into_pyobject(py)?.into_any(),
+            text.into_pyobject(py)?.into_any(),
+        ],
+    )?
+    .into_any())
 }
 
 /// The tagged tuple of a value (see the module docs).
@@ -455,10 +457,26 @@ fn tagged<'py>(py: Python<'py>, value: &Value) -> PyResult<Bound<'py, PyAny>> {
                 m.positions.len().into_pyobject(py)?.into_any(),
                 bytes(le_bytes(m.triangles.as_flattened(), u32::to_le_bytes)).into_any(),
                 m.triangles.len().into_pyobject(py)?.into_any(),
-                m.normals.as_ref().map(|v| bytes(flat_f32(v))).into_pyobject(py)?.into_any(),
-                m.uvs.as_ref().map(|v| bytes(flat_f32(v))).into_pyobject(py)?.into_any(),
-                m.colors.as_ref().map(|v| bytes(flat_f32(v))).into_pyobject(py)?.into_any(),
-                m.tangents.as_ref().map(|v| bytes(flat_f32(v))).into_pyobject(py)?.into_any(),
+                m.normals
+                    .as_ref()
+                    .map(|v| bytes(flat_f32(v)))
+                    .into_pyobject(py)?
+                    .into_any(),
+                m.uvs
+                    .as_ref()
+                    .map(|v| bytes(flat_f32(v)))
+                    .into_pyobject(py)?
+                    .into_any(),
+                m.colors
+                    .as_ref()
+                    .map(|v| bytes(flat_f32(v)))
+                    .into_pyobject(py)?
+                    .into_any(),
+                m.tangents
+                    .as_ref()
+                    .map(|v| bytes(flat_f32(v)))
+                    .into_pyobject(py)?
+                    .into_any(),
             ],
         )?
         .into_any(),

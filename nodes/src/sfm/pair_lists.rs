@@ -37,8 +37,7 @@ pub struct PairLists {
 impl Op for PairLists {
     type Params = PairListsParams;
     const ID: &'static str = "sfm.pair_lists";
-    const SUMMARY: &'static str =
-        "Selects image pairs and lists each pair's keypoints and descriptors, for per-pair list maps.";
+    const SUMMARY: &'static str = "Selects image pairs and lists each pair's keypoints and descriptors, for per-pair list maps.";
     const DOC: &'static str = r#"
 Pair selection as in `sfm.match_pairs` (Schönberger & Frahm, CVPR 2016, §4.1): `selection:
 "exhaustive"` (every pair i < j), `"sequential"` (each image with the next `window`), or
@@ -75,7 +74,11 @@ Example:
 
     fn outputs() -> Vec<PortSpec> {
         vec![
-            PortSpec::new("pairs", PortType::Matrix, "N×2: image indices i, j per pair."),
+            PortSpec::new(
+                "pairs",
+                PortType::Matrix,
+                "N×2: image indices i, j per pair.",
+            ),
             PortSpec::new(
                 "keypoints_a",
                 PortType::Keypoints.list_of(),
@@ -207,7 +210,10 @@ mod tests {
         };
         let values = [
             Some(Value::list(PortType::Keypoints, (0..n).map(kp).collect())),
-            Some(Value::list(PortType::Descriptors, (0..n).map(desc).collect())),
+            Some(Value::list(
+                PortType::Descriptors,
+                (0..n).map(desc).collect(),
+            )),
         ];
         let specs = PairLists::inputs();
         let op = PairLists::new(PairListsParams {
