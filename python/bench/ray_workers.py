@@ -1,7 +1,7 @@
 """Throughput of graphs/many_views.ron with its list maps on Ray: 1 vs 2 worker processes (each
 one CPU, on 127.0.0.1, head with no CPU), beside local runs, and the overhead per task.
 
-    target/pyenv/bin/python python/bench/ray_workers.py [--repeat 3]
+    target/pyenv/bin/python python/bench/ray_workers.py [--repeat 3] [--set features.method=sift]
 
 Per-task overhead is what a task costs beyond the operator's own work, from the run report:
 (stage wall time × workers − Σ worker busy time) / tasks — payload encoding, the trip through
@@ -32,8 +32,26 @@ def median(xs):
     return statistics.median(xs)
 
 
-def local(threads: int, repeat: int) -> float:
+SETS: list = []
+
+
+def load() -> "ocellus.Graph":
     graph = ocellus.Graph.load(GRAPH)
+    for item in SETS:
+        key, value = item.split("=", 1)
+        try:
+            parsed = int(value)
+        except ValueError:
+            try:
+                parsed = float(value)
+            except ValueError:
+                parsed = value
+        graph.set(key, parsed)
+    return graph
+
+
+def local(threads: int, repeat: int) -> float:
+    graph = load()
     times = []
     for _ in range(repeat):
         t = time.perf_counter()
@@ -52,7 +70,7 @@ def distributed(workers: int, repeat: int, items_per_task: int) -> dict:
             cluster.add_node(num_cpus=1, node_ip_address="127.0.0.1")
         cluster.wait_for_nodes(timeout=120)
         ray.init(address=cluster.address, _node_ip_address="127.0.0.1", log_to_driver=False)
-        graph = ocellus.Graph.load(GRAPH)
+        graph = load()
         # Warm-up: worker processes start and import the package.
         ocellus.ray.run(graph, item_cache=None, progress=False, items_per_task=items_per_task)
         walls, stages = [], {}
@@ -84,8 +102,10 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--items-per-task", type=int, default=0)
+    parser.add_argument("--set", action="append", default=[], help="node.param=value")
     args = parser.parse_args()
-    print(f"graph: {GRAPH.name}, median of {args.repeat} runs, items per task {args.items_per_task or 'auto'}")
+    SETS.extend(args.set)
+    print(f"graph: {GRAPH.name} {' '.join(args.set)}, median of {args.repeat} runs, items per task {args.items_per_task or 'auto'}")
     for threads in (1, 2):
         print(f"local, {threads} thread(s): {local(threads, args.repeat):.2f} s")
     for workers in (1, 2):

@@ -56,13 +56,14 @@ def _worker_name() -> str:
     return f"{host} pid {os.getpid()}"
 
 
-def run_chunk(payload: bytes) -> Tuple[bool, Union[bytes, str], str, float]:
-    """The Ray task: runs one chunk payload in the Rust engine. Returns (ok, result bytes or
-    the operator's error, worker name, seconds). Operator errors are returned, not raised, so
-    Ray does not retry them; a crash of the worker process is retried by Ray."""
+def run_chunk(payload: bytes, threads: int = 1) -> Tuple[bool, Union[bytes, str], str, float]:
+    """The Ray task: runs one chunk payload in the Rust engine on ``threads`` threads (the
+    task's CPUs). Returns (ok, result bytes or the operator's error, worker name, seconds).
+    Operator errors are returned, not raised, so Ray does not retry them; a crash of the worker
+    process is retried by Ray."""
     started = time.perf_counter()
     try:
-        result: Union[bytes, str] = _ocellus.run_task(payload)
+        result: Union[bytes, str] = _ocellus.run_task(payload, threads)
         ok = True
     except _ocellus.TaskError as e:
         result, ok = str(e), False
@@ -80,6 +81,7 @@ def submitter(
     import ray
 
     remote = ray.remote(num_cpus=num_cpus, max_retries=max_retries)(run_chunk)
+    threads = max(1, int(num_cpus))
 
     def submit(stage: Dict[str, Any], payloads: List[bytes]) -> Iterator[TaskResult]:
         limit = max_in_flight or max(2, int(2 * ray.cluster_resources().get("CPU", 1)))
@@ -89,7 +91,7 @@ def submitter(
         try:
             while next_task < len(payloads) or pending:
                 while next_task < len(payloads) and len(pending) < limit:
-                    ref = remote.remote(payloads[next_task])
+                    ref = remote.remote(payloads[next_task], threads)
                     payloads[next_task] = b""  # sent: free it here
                     index[ref] = next_task
                     pending.append(ref)

@@ -63,7 +63,18 @@ fn registry(plugins: &[PathBuf]) -> PyResult<Registry> {
 /// A `GraphError` whose message is the `file:line:col: message` lines and whose `diagnostics`
 /// attribute lists them as dicts.
 fn graph_error(py: Python<'_>, diags: &Diagnostics) -> PyErr {
-    let err = GraphError::new_err(diags.to_string().trim_end().to_string());
+    let lines: Vec<String> = diags
+        .0
+        .iter()
+        .map(|d| {
+            let at = d.location().map(|l| format!("{l}: ")).unwrap_or_default();
+            match &d.help {
+                Some(help) => format!("{at}{} (help: {help})", d.message),
+                None => format!("{at}{}", d.message),
+            }
+        })
+        .collect();
+    let err = GraphError::new_err(lines.join("\n"));
     let list = PyList::empty(py);
     for d in &diags.0 {
         let item = PyDict::new(py);
@@ -306,15 +317,37 @@ impl TaskRunner for PyRunner {
 }
 
 /// Runs one distributed task payload (the worker side of `ocellus.ray`) with the built-in
-/// operators; raises `TaskError` when the chunk fails.
+/// operators on `threads` threads (a Ray task holds `num_cpus` cores, so 1 by default); raises
+/// `TaskError` when the chunk fails.
 #[pyfunction]
-fn run_task<'py>(py: Python<'py>, payload: &[u8]) -> PyResult<Bound<'py, PyBytes>> {
+#[pyo3(signature = (payload, threads = 1))]
+fn run_task<'py>(py: Python<'py>, payload: &[u8], threads: usize) -> PyResult<Bound<'py, PyBytes>> {
+    static REGISTRY: std::sync::OnceLock<Result<Registry, String>> = std::sync::OnceLock::new();
+    static POOLS: Mutex<Vec<(usize, Arc<rayon::ThreadPool>)>> = Mutex::new(Vec::new());
+    let threads = threads.max(1);
+    let pool = {
+        let mut pools = POOLS
+            .lock()
+            .map_err(|_| PyException::new_err("worker thread pools are unusable"))?;
+        match pools.iter().find(|(n, _)| *n == threads) {
+            Some((_, pool)) => pool.clone(),
+            None => {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .thread_name(|i| format!("ocellus-task-{i}"))
+                    .build()
+                    .map_err(|e| PyException::new_err(format!("worker threads: {e}")))?;
+                let pool = Arc::new(pool);
+                pools.push((threads, pool.clone()));
+                pool
+            }
+        }
+    };
     let result = py.detach(|| {
-        static REGISTRY: std::sync::OnceLock<Result<Registry, String>> = std::sync::OnceLock::new();
-        let registry =
-            REGISTRY.get_or_init(|| ocellus_nodes::builtin_registry().map_err(|e| e.to_string()));
+        let registry = REGISTRY
+            .get_or_init(|| ocellus_nodes::builtin_registry().map_err(|e| e.to_string()));
         match registry {
-            Ok(r) => ocellus_engine::distribute::run_task(r, payload),
+            Ok(r) => pool.install(|| ocellus_engine::distribute::run_task(r, payload)),
             Err(e) => Err(e.clone()),
         }
     });
