@@ -344,8 +344,8 @@ fn run_task<'py>(py: Python<'py>, payload: &[u8], threads: usize) -> PyResult<Bo
         }
     };
     let result = py.detach(|| {
-        let registry = REGISTRY
-            .get_or_init(|| ocellus_nodes::builtin_registry().map_err(|e| e.to_string()));
+        let registry =
+            REGISTRY.get_or_init(|| ocellus_nodes::builtin_registry().map_err(|e| e.to_string()));
         match registry {
             Ok(r) => pool.install(|| ocellus_engine::distribute::run_task(r, payload)),
             Err(e) => Err(e.clone()),
