@@ -271,3 +271,37 @@ fn only_builtin_maps_without_side_effects_are_distributed() {
     assert_eq!(report.distributed.len(), 1);
     assert_eq!(encoded(&report), encoded(&run(&graph, None)));
 }
+
+#[test]
+fn ray_without_a_usable_driver_is_a_clear_error() {
+    let graph = root().join("graphs/features.ron");
+    let graph = graph.to_str().unwrap();
+    let run = |python: &str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_ocellus"))
+            .args(["run", graph, "--ray", "127.0.0.1:9"])
+            .env("OCELLUS_PYTHON", python)
+            .output()
+            .unwrap()
+    };
+    // No interpreter at all.
+    let out = run("/nonexistent/python3");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("--ray needs Python with the `ocellus` package"),
+        "{stderr}"
+    );
+    // An interpreter that exits at once (no package, no Ray).
+    let out = run("/bin/false");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("the Ray driver"), "{stderr}");
+    assert!(stderr.contains("did not start"), "{stderr}");
+
+    // --items-per-task means nothing without --ray.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_ocellus"))
+        .args(["run", graph, "--items-per-task", "4"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+}

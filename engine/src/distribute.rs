@@ -289,22 +289,14 @@ pub fn run_mapped(
         );
     }
 
-    let mut columns: Vec<Vec<Value>> = vec![Vec::with_capacity(n); node.info.outputs.len()];
-    for (k, slot) in slots.into_iter().enumerate() {
-        let Some(values) = slot else {
-            return Err(OpError::failed(format!(
-                "the runner finished without element {k}"
-            )));
-        };
-        for (column, value) in columns.iter_mut().zip(values) {
-            column.push(value);
-        }
-    }
-    Ok(columns
+    let elements = slots
         .into_iter()
-        .zip(&node.info.outputs)
-        .map(|(items, spec)| Value::list(spec.ty.clone(), items))
-        .collect())
+        .enumerate()
+        .map(|(k, slot)| {
+            slot.ok_or_else(|| OpError::failed(format!("the runner finished without element {k}")))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(crate::exec::gather_columns(node, elements))
 }
 
 fn describe_chunk(chunk: &[usize]) -> String {
@@ -656,19 +648,12 @@ pub fn run_task(registry: &Registry, payload: &[u8]) -> Result<Vec<u8>, String> 
         .into_par_iter()
         .map(|local| crate::exec::run_element(&node, &ctx, &inputs, local, elements[local]))
         .collect();
-    let mut columns: Vec<Vec<Value>> =
-        vec![Vec::with_capacity(elements.len()); node.info.outputs.len()];
-    for (local, result) in per_element.into_iter().enumerate() {
-        let values = result.map_err(|e| format!("list element {}: {e}", elements[local]))?;
-        for (column, value) in columns.iter_mut().zip(values) {
-            column.push(value);
-        }
-    }
-    let outputs: Vec<Value> = columns
+    let elements = per_element
         .into_iter()
-        .zip(&node.info.outputs)
-        .map(|(items, spec)| Value::list(spec.ty.clone(), items))
-        .collect();
+        .enumerate()
+        .map(|(local, result)| result.map_err(|e| format!("list element {}: {e}", elements[local])))
+        .collect::<Result<Vec<_>, _>>()?;
+    let outputs = crate::exec::gather_columns(&node, elements);
     let mut out = RESULT_MAGIC.to_vec();
     out.extend_from_slice(&encode_values(&outputs));
     Ok(out)

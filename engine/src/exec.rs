@@ -980,18 +980,29 @@ pub fn run_node(
         .into_par_iter()
         .map(|k| run_element(node, ctx, inputs, k, k))
         .collect();
-    let mut columns: Vec<Vec<Value>> = vec![Vec::with_capacity(n); node.info.outputs.len()];
-    for (k, result) in per_element.into_iter().enumerate() {
-        let values = result.map_err(|e| OpError::failed(format!("list element {k}: {e}")))?;
+    let elements = per_element
+        .into_iter()
+        .enumerate()
+        .map(|(k, result)| result.map_err(|e| OpError::failed(format!("list element {k}: {e}"))))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(gather_columns(node, elements))
+}
+
+/// A mapped node's outputs from its elements' outputs: one list per output port, in element
+/// order.
+pub(crate) fn gather_columns(node: &Node, elements: Vec<Vec<Value>>) -> Vec<Value> {
+    let mut columns: Vec<Vec<Value>> =
+        vec![Vec::with_capacity(elements.len()); node.info.outputs.len()];
+    for values in elements {
         for (column, value) in columns.iter_mut().zip(values) {
             column.push(value);
         }
     }
-    Ok(columns
+    columns
         .into_iter()
         .zip(&node.info.outputs)
         .map(|(items, spec)| Value::list(spec.ty.clone(), items))
-        .collect())
+        .collect()
 }
 
 /// The length of a mapped node's lists: every mapped input must be a list, all of one length.
