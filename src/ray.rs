@@ -8,6 +8,7 @@
 use std::io::{BufReader, BufWriter, Read, Write};
 use std::path::PathBuf;
 use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 use ocellus_engine::distribute::{Distribution, Stage, TaskDone, TaskRunner};
@@ -17,6 +18,9 @@ use serde_json::{Value as Json, json};
 pub struct RayDriver {
     pipes: Mutex<Pipes>,
     child: Mutex<Child>,
+    /// Set when the protocol went out of step: the driver is killed and every later stage fails
+    /// (never reading another stage's leftover frames as its own).
+    broken: AtomicBool,
 }
 
 struct Pipes {
@@ -100,6 +104,7 @@ impl RayDriver {
         Ok(RayDriver {
             pipes: Mutex::new(pipes),
             child: Mutex::new(child),
+            broken: AtomicBool::new(false),
         })
     }
 
@@ -119,8 +124,21 @@ impl RayDriver {
         }
     }
 
+    /// Kills the driver after a protocol error; later stages fail at once.
+    fn poison(&self, message: String) -> String {
+        self.broken.store(true, Ordering::SeqCst);
+        if let Ok(mut child) = self.child.lock() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+        message
+    }
+
     /// Asks the driver to exit and waits for it.
     pub fn close(&self) {
+        if self.broken.load(Ordering::SeqCst) {
+            return;
+        }
         if let Ok(mut pipes) = self.pipes.lock() {
             let _ = write_frame(&mut pipes.to, b"{}");
             let _ = pipes.to.flush();
@@ -138,6 +156,9 @@ impl TaskRunner for RayDriver {
         tasks: Vec<Vec<u8>>,
         done: &mut dyn FnMut(TaskDone) -> Result<(), String>,
     ) -> Result<(), String> {
+        if self.broken.load(Ordering::SeqCst) {
+            return Err("the Ray driver stopped after an earlier error".into());
+        }
         let mut pipes = self
             .pipes
             .lock()
@@ -153,39 +174,54 @@ impl TaskRunner for RayDriver {
             }
             pipes.to.flush()
         })();
-        sent.map_err(|e| format!("cannot send tasks to the Ray driver: {e}"))?;
+        if let Err(e) = sent {
+            drop(pipes);
+            return Err(self.poison(format!("cannot send tasks to the Ray driver: {e}")));
+        }
         drop(tasks);
-        // Read to the stage's end even after a failure, so the next stage starts clean.
+        // Read to the stage's end even after a failed task, so the next stage starts clean; a
+        // frame that makes no sense ends the driver instead.
         let mut outcome = Ok(());
-        loop {
-            let head = read_json(&mut pipes.from)?;
-            if head.get("end").is_some() {
-                break;
+        let protocol = (|| -> Result<(), String> {
+            loop {
+                let head = read_json(&mut pipes.from)?;
+                if head.get("end").is_some() {
+                    if let Some(error) = head.get("error").and_then(Json::as_str)
+                        && outcome.is_ok()
+                    {
+                        outcome = Err(format!("the Ray driver: {error}"));
+                    }
+                    return Ok(());
+                }
+                let data = read_frame(&mut pipes.from)?;
+                let task = head
+                    .get("task")
+                    .and_then(Json::as_u64)
+                    .ok_or("the Ray driver sent a result without a task index")?;
+                if outcome.is_err() {
+                    continue;
+                }
+                let ok = head.get("ok").and_then(Json::as_bool).unwrap_or(false);
+                let result = if ok {
+                    Ok(data)
+                } else {
+                    Err(String::from_utf8_lossy(&data).into_owned())
+                };
+                outcome = done(TaskDone {
+                    task: task as usize,
+                    result,
+                    worker: head
+                        .get("worker")
+                        .and_then(Json::as_str)
+                        .unwrap_or("?")
+                        .to_string(),
+                    seconds: head.get("seconds").and_then(Json::as_f64).unwrap_or(0.0),
+                });
             }
-            let data = read_frame(&mut pipes.from)?;
-            if outcome.is_err() {
-                continue;
-            }
-            let task = head
-                .get("task")
-                .and_then(Json::as_u64)
-                .ok_or("the Ray driver sent a result without a task index")?;
-            let ok = head.get("ok").and_then(Json::as_bool).unwrap_or(false);
-            let result = if ok {
-                Ok(data)
-            } else {
-                Err(String::from_utf8_lossy(&data).into_owned())
-            };
-            outcome = done(TaskDone {
-                task: task as usize,
-                result,
-                worker: head
-                    .get("worker")
-                    .and_then(Json::as_str)
-                    .unwrap_or("?")
-                    .to_string(),
-                seconds: head.get("seconds").and_then(Json::as_f64).unwrap_or(0.0),
-            });
+        })();
+        drop(pipes);
+        if let Err(e) = protocol {
+            return Err(self.poison(e));
         }
         outcome
     }

@@ -41,7 +41,9 @@ pub const TASK_MAGIC: [u8; 8] = *b"OCTASK01";
 /// First bytes of a task result.
 pub const RESULT_MAGIC: [u8; 8] = *b"OCRSLT01";
 /// Bumped when the element key derivation changes.
-const ITEM_SCHEME: &[u8] = b"ocellus-item-v1";
+/// Bumped when the element key derivation changes; the engine's version is part of it, so an
+/// operator fixed in a new release never reuses the old release's elements.
+const ITEM_SCHEME: &[u8] = concat!("ocellus-item-v1/", env!("CARGO_PKG_VERSION")).as_bytes();
 
 /// One mapped node handed to a runner.
 #[derive(Debug, Clone)]
@@ -525,7 +527,41 @@ fn encode_task(
 /// Runs one task payload with the operators of `registry`: the worker's side of a distributed
 /// map. Returns the result bytes (the chunk's outputs, one list per output port, in the value
 /// codec) or a message saying why the chunk failed.
+///
+/// The task's limits (`--max-image-pixels` and the others, as the driver had them) apply to
+/// this call only when `apply_limits` is true, which sets them for the whole process: what a
+/// worker process does ([`run_worker_task`]); a runner inside the driver's process leaves
+/// them as they are. An operator's panic is caught and returned as an error.
 pub fn run_task(registry: &Registry, payload: &[u8]) -> Result<Vec<u8>, String> {
+    run_task_with(registry, payload, false)
+}
+
+/// [`run_task`] in a worker process: the driver's limits are applied first.
+pub fn run_worker_task(registry: &Registry, payload: &[u8]) -> Result<Vec<u8>, String> {
+    run_task_with(registry, payload, true)
+}
+
+fn run_task_with(
+    registry: &Registry,
+    payload: &[u8],
+    apply_limits: bool,
+) -> Result<Vec<u8>, String> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        decode_and_run(registry, payload, apply_limits)
+    }))
+    .unwrap_or_else(|payload| {
+        Err(format!(
+            "operator panicked: {}",
+            crate::exec::panic_message(payload.as_ref())
+        ))
+    })
+}
+
+fn decode_and_run(
+    registry: &Registry,
+    payload: &[u8],
+    apply_limits: bool,
+) -> Result<Vec<u8>, String> {
     let Some(body) = payload.strip_prefix(&TASK_MAGIC) else {
         return Err("not an ocellus task payload (or one from another version)".into());
     };
@@ -586,7 +622,9 @@ pub fn run_task(registry: &Registry, payload: &[u8]) -> Result<Vec<u8>, String> 
             "operator `{op_id}` sees different input files on this worker than on the driver"
         ));
     }
-    crate::limits::set(limits);
+    if apply_limits {
+        crate::limits::set(limits);
+    }
 
     let mut values = values.into_iter();
     let mut inputs: Vec<Option<Value>> = Vec::with_capacity(kinds.len());
@@ -676,7 +714,11 @@ fn decode_result(bytes: &[u8], node: &Node, len: usize) -> Result<Vec<Vec<Value>
     let mut elements: Vec<Vec<Value>> = vec![Vec::with_capacity(outputs.len()); len];
     for (value, spec) in outputs.into_iter().zip(&node.info.outputs) {
         match value {
-            Value::List(list) if list.element == spec.ty && list.items.len() == len => {
+            Value::List(list)
+                if list.element == spec.ty
+                    && list.items.len() == len
+                    && list.items.iter().all(|item| item.port_type() == spec.ty) =>
+            {
                 for (element, item) in elements.iter_mut().zip(list.items.iter()) {
                     element.push(item.clone());
                 }

@@ -105,6 +105,8 @@ def submitter(
                         yield (i, False, f"{type(e).__name__}: {e}", "ray", 0.0)
                         return
                     yield (i, ok, data, worker, seconds)
+                    if not ok:
+                        return  # an operator's error fails the map: stop at once
         finally:
             # The engine stopped listening (a failed chunk): free the cluster.
             for ref in pending:

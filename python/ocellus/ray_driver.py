@@ -12,7 +12,7 @@ Frames are an unsigned 64-bit little-endian length, then that many bytes.
   frames; an empty JSON object ``{}`` asks the driver to exit;
 * driver → CLI per finished task: JSON ``{"task", "ok", "worker", "seconds"}``, then the result
   bytes (or the UTF-8 error text); after the stage's last task (or its first failure):
-  JSON ``{"end": true}``.
+  JSON ``{"end": true}``, with ``"error"`` when the stage could not finish.
 """
 
 from __future__ import annotations
@@ -52,7 +52,8 @@ def main(argv: Optional[list] = None) -> int:
     args = parser.parse_args(argv)
 
     # The protocol owns the real stdout; anything printed (Ray's own messages) goes to stderr.
-    proto = os.fdopen(os.dup(1), "wb", buffering=0)
+    # Buffered: a write always writes everything; flushed after each frame group.
+    proto = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     requests = sys.stdin.buffer
 
@@ -68,6 +69,7 @@ def main(argv: Optional[list] = None) -> int:
         _write_json(proto, {"error": f"{type(e).__name__}: {e}"})
         return 1
     _write_json(proto, {"ready": True, "cpus": resources.get("CPU", 0), "nodes": len(ray.nodes())})
+    proto.flush()
 
     while True:
         header = _read_frame(requests)
@@ -82,10 +84,16 @@ def main(argv: Optional[list] = None) -> int:
             if frame is None:
                 return 1
             payloads.append(frame)
-        for task, ok, data, worker, seconds in submit(stage, payloads):
-            _write_json(proto, {"task": task, "ok": ok, "worker": worker, "seconds": seconds})
-            _write_frame(proto, data if isinstance(data, bytes) else str(data).encode())
-        _write_json(proto, {"end": True})
+        end: dict = {"end": True}
+        try:
+            for task, ok, data, worker, seconds in submit(stage, payloads):
+                _write_json(proto, {"task": task, "ok": ok, "worker": worker, "seconds": seconds})
+                _write_frame(proto, data if isinstance(data, bytes) else str(data).encode())
+                proto.flush()
+        except Exception as e:  # the cluster went away mid-stage: say so, stay in step
+            end["error"] = f"{type(e).__name__}: {e}"
+        _write_json(proto, end)
+        proto.flush()
 
 
 if __name__ == "__main__":

@@ -163,13 +163,12 @@ impl PyGraph {
             runner: Arc::new(PyRunner { submit }),
             items_per_task,
             item_cache,
+            // No lock of our own around the callback: the interpreter lock is the only one, so
+            // two maps reporting at once cannot deadlock.
             progress: progress.map(|callback| {
-                let callback = Arc::new(Mutex::new(callback));
                 Arc::new(move |node: &str, done: usize, total: usize| {
                     Python::attach(|py| {
-                        if let Ok(cb) = callback.lock() {
-                            let _ = cb.call1(py, (node, done, total));
-                        }
+                        let _ = callback.call1(py, (node, done, total));
                     });
                 }) as ocellus_engine::distribute::ItemProgressFn
             }),
@@ -347,7 +346,7 @@ fn run_task<'py>(py: Python<'py>, payload: &[u8], threads: usize) -> PyResult<Bo
         let registry =
             REGISTRY.get_or_init(|| ocellus_nodes::builtin_registry().map_err(|e| e.to_string()));
         match registry {
-            Ok(r) => pool.install(|| ocellus_engine::distribute::run_task(r, payload)),
+            Ok(r) => pool.install(|| ocellus_engine::distribute::run_worker_task(r, payload)),
             Err(e) => Err(e.clone()),
         }
     });
