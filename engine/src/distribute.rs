@@ -175,7 +175,16 @@ pub fn run_mapped(
     let cache = distribution
         .item_cache
         .as_deref()
-        .and_then(|dir| DiskCache::open(dir).ok());
+        .and_then(|dir| match DiskCache::open(dir) {
+            Ok(cache) => Some(cache),
+            Err(e) => {
+                tracing::warn!(
+                    "item cache {}: {e}; elements will not be kept",
+                    dir.display()
+                );
+                None
+            }
+        });
 
     // Keys of every element, then what the cache already holds.
     let whole_hashes: Vec<Option<[u8; 32]>> = node

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import sys
 import threading
-import time
 
 import numpy as np
 
@@ -103,7 +102,6 @@ def test_a_worker_killed_mid_run_still_gives_identical_outputs(ray_cluster):
     assert started.wait(timeout=300), "the distributed run did not start"
     done_at_kill = progress["features"][0]
     cluster.remove_node(workers[1], allow_graceful=False)
-    killed_at = time.monotonic()
     thread.join(timeout=600)
     assert not thread.is_alive(), "the run did not finish after a worker was killed"
     assert "error" not in result, result.get("error")
@@ -114,5 +112,3 @@ def test_a_worker_killed_mid_run_still_gives_identical_outputs(ray_cluster):
     stages = {s["node"]: s for s in graph.last_report["distributed"]}
     assert stages["features"]["failed_tasks"] == 0
     assert sum(w["items"] for w in stages["features"]["workers"].values()) == 48
-    # After the kill, one worker process finished the job.
-    assert time.monotonic() >= killed_at

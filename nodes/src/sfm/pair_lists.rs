@@ -119,17 +119,6 @@ Example:
     }
 }
 
-/// The items of list input `name`.
-fn items<'a>(inputs: &Inputs<'a>, name: &str) -> Result<&'a [Value], OpError> {
-    match inputs.require(name)? {
-        Value::List(list) => Ok(&list.items),
-        other => Err(OpError::input(
-            name,
-            format!("expected a list, got {}", other.port_type()),
-        )),
-    }
-}
-
 impl Operator for PairLists {
     fn run(&self, _ctx: &RunContext, inputs: &Inputs<'_>) -> Result<Outputs, OpError> {
         let keypoints = keypoint_lists(inputs, "keypoints")?;
@@ -150,9 +139,9 @@ impl Operator for PairLists {
         }
         let pairs =
             select_pairs(&descriptors, &keypoints, &self.options).map_err(OpError::failed)?;
-        let keypoint_values = items(inputs, "keypoints")?;
-        let descriptor_values = items(inputs, "descriptors")?;
-        let pick = |values: &[Value], side: fn(&(usize, usize)) -> usize| -> Vec<Value> {
+        let keypoint_values = required_list(inputs, "keypoints", PortType::Keypoints, Some)?;
+        let descriptor_values = required_list(inputs, "descriptors", PortType::Descriptors, Some)?;
+        let pick = |values: &[&Value], side: fn(&(usize, usize)) -> usize| -> Vec<Value> {
             pairs.iter().map(|p| values[side(p)].clone()).collect()
         };
         let matrix = Matrix::new(
@@ -168,19 +157,19 @@ impl Operator for PairLists {
             .with("pairs", Value::Matrix(matrix.into()))
             .with(
                 "keypoints_a",
-                Value::list(PortType::Keypoints, pick(keypoint_values, |p| p.0)),
+                Value::list(PortType::Keypoints, pick(&keypoint_values, |p| p.0)),
             )
             .with(
                 "keypoints_b",
-                Value::list(PortType::Keypoints, pick(keypoint_values, |p| p.1)),
+                Value::list(PortType::Keypoints, pick(&keypoint_values, |p| p.1)),
             )
             .with(
                 "descriptors_a",
-                Value::list(PortType::Descriptors, pick(descriptor_values, |p| p.0)),
+                Value::list(PortType::Descriptors, pick(&descriptor_values, |p| p.0)),
             )
             .with(
                 "descriptors_b",
-                Value::list(PortType::Descriptors, pick(descriptor_values, |p| p.1)),
+                Value::list(PortType::Descriptors, pick(&descriptor_values, |p| p.1)),
             ))
     }
 }
