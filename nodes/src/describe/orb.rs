@@ -35,7 +35,7 @@ use ocellus_engine::{param_enum, params};
 use rayon::prelude::*;
 
 use super::brief::{SplitMix64, gaussian_point, smooth_gray};
-use crate::detect::fast::fast9;
+use crate::detect::fast::fast9_region;
 use crate::detect::gray::gray_u8;
 use crate::filter::border::BorderMode;
 use crate::filter::gaussian::gaussian_blur;
@@ -354,21 +354,12 @@ fn pyramid(gray: Vec<u8>, w: usize, h: usize, p: &OrbParams) -> Result<Vec<Level
     Ok(levels)
 }
 
-/// FAST corners of `img` at least `border` px (≥ 4) from every side, found on the inner crop
-/// (plus the 4-px ring FAST and its non-maximum suppression read), in raster order.
+/// FAST corners of `img` at least `border` px (≥ 4) from every side, found on the inner
+/// rectangle (plus the 4-px ring FAST and its non-maximum suppression read), in raster order.
 fn fast_inside(img: &[u8], w: usize, h: usize, t: u8, border: usize) -> Vec<(usize, usize, u8)> {
     let m = border - 4;
     let (cw, ch) = (w - 2 * m, h - 2 * m);
-    let found = if m == 0 {
-        fast9(img, w, h, t, true)
-    } else {
-        let mut crop = Vec::with_capacity(cw * ch);
-        for row in img.chunks_exact(w).skip(m).take(ch) {
-            crop.extend_from_slice(&row[m..m + cw]);
-        }
-        fast9(&crop, cw, ch, t, true)
-    };
-    found
+    fast9_region(img, w, (m, m, cw, ch), t, true)
         .into_iter()
         .map(|(x, y, s)| (x + m, y + m, s))
         .filter(|&(x, y, _)| x >= border && y >= border && x < w - border && y < h - border)

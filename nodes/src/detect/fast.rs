@@ -272,8 +272,7 @@ fn fast_row(
 /// corner columns into `corners`. `scores` must be zero except at the columns `corners` held on
 /// entry (they are cleared first). `found` is scratch.
 fn score_row(
-    img: &[u8],
-    width: usize,
+    img: &Region<'_>,
     y: usize,
     t: u8,
     scores: &mut [u8],
@@ -284,27 +283,34 @@ fn score_row(
         scores[x] = 0;
     }
     corners.clear();
-    let n = width - 6;
+    let n = img.width - 6;
     let at = |dy: isize, dx: isize| {
-        let start = ((y as isize + dy) * width as isize + 3 + dx) as usize;
-        &img[start..start + n]
+        let start = img.index(3, y) as isize + dy * img.stride as isize + dx;
+        &img.data[start as usize..start as usize + n]
     };
     if n >= LANES {
         let ring: [&[u8]; 16] = CIRCLE.map(|(dx, dy)| at(dy, dx));
         found.clear();
-        fast_row(&ring, at(0, 0), n, t, &mut scores[3..3 + n], found);
+        let row_scores = &mut scores[3..3 + n];
+        #[cfg(target_arch = "x86_64")]
+        let done = super::fast_avx2::fast_row(&ring, at(0, 0), n, t, row_scores, found);
+        #[cfg(not(target_arch = "x86_64"))]
+        let done = false;
+        if !done {
+            fast_row(&ring, at(0, 0), n, t, row_scores, found);
+        }
         corners.extend(found.iter().map(|&i| i + 3));
         return;
     }
     // Narrow images: every pixel, scalar.
     let ti = i16::from(t);
-    let offsets: [isize; 16] = CIRCLE.map(|(dx, dy)| dy * width as isize + dx);
+    let offsets: [isize; 16] = CIRCLE.map(|(dx, dy)| dy * img.stride as isize + dx);
     for (x, s) in scores.iter_mut().enumerate().take(3 + n).skip(3) {
-        let p = y * width + x;
-        let v = i16::from(img[p]);
+        let p = img.index(x, y);
+        let v = i16::from(img.data[p]);
         let mut d = [0i16; 16];
         for (dk, &o) in d.iter_mut().zip(&offsets) {
-            *dk = v - i16::from(img[(p as isize + o) as usize]);
+            *dk = v - i16::from(img.data[(p as isize + o) as usize]);
         }
         if is_corner(&d, ti) {
             *s = score(&d, ti).clamp(0, 255) as u8;
@@ -325,9 +331,54 @@ pub fn fast9(
     t: u8,
     nonmax: bool,
 ) -> Vec<(usize, usize, u8)> {
-    if width < 7 || height < 7 || img.len() != width * height {
+    if img.len() != width * height {
         return Vec::new();
     }
+    fast9_region(img, width, (0, 0, width, height), t, nonmax)
+}
+
+/// A rectangle of a row-major image with `stride` bytes per row.
+struct Region<'a> {
+    data: &'a [u8],
+    stride: usize,
+    x0: usize,
+    y0: usize,
+    width: usize,
+}
+
+impl Region<'_> {
+    /// Index in `data` of region pixel `(x, y)`.
+    fn index(&self, x: usize, y: usize) -> usize {
+        (self.y0 + y) * self.stride + self.x0 + x
+    }
+}
+
+/// [`fast9`] of the rectangle `(x0, y0, width, height)` of an image with `stride` bytes per row,
+/// as if it were cropped: corners at least 3 px inside the rectangle, scores outside it count as
+/// 0 for the non-maximum suppression, coordinates relative to `(x0, y0)`. No copy is made.
+/// Returns nothing when the rectangle does not lie inside `img`.
+pub fn fast9_region(
+    img: &[u8],
+    stride: usize,
+    (x0, y0, width, height): (usize, usize, usize, usize),
+    t: u8,
+    nonmax: bool,
+) -> Vec<(usize, usize, u8)> {
+    let inside = x0.checked_add(width).is_some_and(|right| right <= stride)
+        && y0
+            .checked_add(height)
+            .and_then(|bottom| bottom.checked_mul(stride))
+            .is_some_and(|end| end <= img.len());
+    if width < 7 || height < 7 || !inside {
+        return Vec::new();
+    }
+    let img = Region {
+        data: img,
+        stride,
+        x0,
+        y0,
+        width,
+    };
     let first = 3;
     let last = height - 3; // exclusive
     let bands = (last - first).div_ceil(BAND_ROWS);
@@ -342,7 +393,7 @@ pub fn fast9(
                 let mut scores = vec![0u8; width];
                 let mut corners = Vec::new();
                 for y in y0..y1 {
-                    score_row(img, width, y, t, &mut scores, &mut found, &mut corners);
+                    score_row(&img, y, t, &mut scores, &mut found, &mut corners);
                     out.extend(corners.iter().map(|&x| (x, y, scores[x])));
                 }
                 return out;
@@ -353,20 +404,12 @@ pub fn fast9(
             let mut cols: [Vec<usize>; 3] = [Vec::new(), Vec::new(), Vec::new()];
             for (slot, y) in [(0, y0 - 1), (1, y0)] {
                 if y >= first {
-                    score_row(
-                        img,
-                        width,
-                        y,
-                        t,
-                        &mut ring[slot],
-                        &mut found,
-                        &mut cols[slot],
-                    );
+                    score_row(&img, y, t, &mut ring[slot], &mut found, &mut cols[slot]);
                 }
             }
             for y in y0..y1 {
                 if y + 1 < last {
-                    score_row(img, width, y + 1, t, &mut ring[2], &mut found, &mut cols[2]);
+                    score_row(&img, y + 1, t, &mut ring[2], &mut found, &mut cols[2]);
                 } else {
                     for &x in &cols[2] {
                         ring[2][x] = 0;
@@ -658,6 +701,82 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The AVX2 row kernel against the portable one, row by row: random, blocky and few-level
+    /// images, row lengths around whole vectors (the overlapping tail), every threshold class.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_row_kernel_matches_the_portable_one() {
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let mut checked = 0;
+        for (i, w) in [38usize, 39, 45, 70, 71, 101, 134, 200]
+            .into_iter()
+            .enumerate()
+        {
+            let h = 12;
+            let seed = 300 + i as u64;
+            let random = random_u8(w, h, Channels::Gray, seed)
+                .as_u8()
+                .unwrap()
+                .to_vec();
+            let levels: Vec<u8> = random
+                .iter()
+                .map(|&v| if v > 247 { 255 } else { (v / 20) * 20 })
+                .collect();
+            for img in [random, blocks(w, h, seed), levels] {
+                for t in [0u8, 1, 5, 20, 40, 128, 254, 255] {
+                    for y in 3..h - 3 {
+                        let n = w - 6;
+                        let at = |dy: isize, dx: isize| {
+                            let start = ((y as isize + dy) * w as isize + 3 + dx) as usize;
+                            &img[start..start + n]
+                        };
+                        let ring: [&[u8]; 16] = CIRCLE.map(|(dx, dy)| at(dy, dx));
+                        let (mut s1, mut c1) = (vec![0u8; n], Vec::new());
+                        let (mut s2, mut c2) = (vec![0u8; n], Vec::new());
+                        fast_row(&ring, at(0, 0), n, t, &mut s1, &mut c1);
+                        assert!(super::super::fast_avx2::fast_row(
+                            &ring,
+                            at(0, 0),
+                            n,
+                            t,
+                            &mut s2,
+                            &mut c2
+                        ));
+                        assert_eq!((&s1, &c1), (&s2, &c2), "w {w} y {y} t {t}");
+                        checked += c1.len();
+                    }
+                }
+            }
+        }
+        assert!(checked > 1000, "too few corners compared: {checked}");
+    }
+
+    #[test]
+    fn region_equals_a_crop() {
+        let (w, h) = (120, 90);
+        let img = blocks(w, h, 21);
+        let (x0, y0, cw, ch) = (13, 7, 80, 70);
+        let crop: Vec<u8> = img
+            .chunks_exact(w)
+            .skip(y0)
+            .take(ch)
+            .flat_map(|row| row[x0..x0 + cw].iter().copied())
+            .collect();
+        for nonmax in [false, true] {
+            let expected = fast9(&crop, cw, ch, 10, nonmax);
+            assert!(!expected.is_empty());
+            assert_eq!(
+                fast9_region(&img, w, (x0, y0, cw, ch), 10, nonmax),
+                expected
+            );
+        }
+        // Rectangles that do not fit give nothing.
+        assert!(fast9_region(&img, w, (50, 0, 80, 10), 10, true).is_empty());
+        assert!(fast9_region(&img, w, (0, 50, 10, 41), 10, true).is_empty());
     }
 
     #[test]

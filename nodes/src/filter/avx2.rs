@@ -431,3 +431,100 @@ fn load_bytes32(data: &[u8], i: usize) -> __m256i {
         None => _mm256_set1_epi16(0),
     }
 }
+
+/// One group of 8 outputs of a one-channel linear horizontal pass whose 8 sample pairs lie in
+/// the 16 bytes from `base`: `shuffle` puts pair `i` (bytes `r_i`, `r_i + 1` after `base`) at
+/// bytes `2i`, `2i + 1`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct PairGroup {
+    pub base: u32,
+    pub shuffle: [u8; 16],
+}
+
+/// The groups of 8 outputs from the start of a row whose pairs (`starts`, non-decreasing, each
+/// `≤ src − 2`) fit 16 bytes that lie inside a source row of `src` samples; stops at the
+/// first group that does not.
+pub(crate) fn pair_groups(starts: &[u32], src: usize) -> Vec<PairGroup> {
+    let mut groups = Vec::new();
+    for chunk in starts.chunks_exact(8) {
+        let base = chunk[0];
+        if base as usize + 16 > src {
+            break;
+        }
+        let mut shuffle = [0u8; 16];
+        let mut fits = true;
+        for (i, &s) in chunk.iter().enumerate() {
+            match s.checked_sub(base) {
+                Some(r) if r <= 14 => {
+                    shuffle[2 * i] = r as u8;
+                    shuffle[2 * i + 1] = r as u8 + 1;
+                }
+                _ => fits = false,
+            }
+        }
+        if !fits {
+            break;
+        }
+        groups.push(PairGroup { base, shuffle });
+    }
+    groups
+}
+
+/// `out[o] = (row[s]·w₀ + row[s + 1]·w₁) ≫ 4` (32-bit sum, as the portable pass) for the 8
+/// outputs of each group, from the start of `out`; returns how many outputs it wrote. `None`
+/// without AVX2.
+pub(crate) fn h_pairs_u8(
+    row: &[u8],
+    groups: &[PairGroup],
+    weights: &[[i16; 2]],
+    out: &mut [i16],
+) -> Option<usize> {
+    if !available() {
+        return None;
+    }
+    // SAFETY: AVX2 is available (checked above).
+    Some(unsafe { h_pairs_u8_avx2(row, groups, weights, out) })
+}
+
+#[target_feature(enable = "avx2")]
+fn h_pairs_u8_avx2(
+    row: &[u8],
+    groups: &[PairGroup],
+    weights: &[[i16; 2]],
+    out: &mut [i16],
+) -> usize {
+    use std::arch::x86_64::{
+        _mm_shuffle_epi8, _mm256_madd_epi16, _mm256_packs_epi32, _mm256_srai_epi32,
+    };
+    let mut done = 0;
+    for ((group, w), o) in groups
+        .iter()
+        .zip(weights.chunks_exact(8))
+        .zip(out.chunks_exact_mut(8))
+    {
+        let source = load_bytes16(row, group.base as usize);
+        // SAFETY: `shuffle` is 16 readable bytes; unaligned load.
+        let mask = unsafe { _mm_loadu_si128(group.shuffle.as_ptr().cast::<__m128i>()) };
+        let pairs = _mm256_cvtepu8_epi16(_mm_shuffle_epi8(source, mask));
+        let Ok(w) = <&[[i16; 2]; 8]>::try_from(w) else {
+            break;
+        };
+        // SAFETY: `w` is 8 pairs of i16, 32 readable bytes; unaligned load.
+        let w = unsafe { _mm256_loadu_si256(w.as_ptr().cast::<__m256i>()) };
+        let sums = _mm256_srai_epi32(_mm256_madd_epi16(pairs, w), 4);
+        // Lane 0 holds sums 0..3 twice, lane 1 sums 4..7: take the low quarter of each.
+        let packed = _mm256_permute4x64_epi64(_mm256_packs_epi32(sums, sums), 0b10_00);
+        let Ok(o) = <&mut [i16; 8]>::try_from(o) else {
+            break;
+        };
+        // SAFETY: `o` is 16 writable bytes, exclusively borrowed; unaligned store.
+        unsafe {
+            _mm_storeu_si128(
+                o.as_mut_ptr().cast::<__m128i>(),
+                _mm256_castsi256_si128(packed),
+            )
+        };
+        done += 8;
+    }
+    done
+}

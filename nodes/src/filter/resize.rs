@@ -388,6 +388,10 @@ struct Taps {
     /// source has fewer than 2 samples or the taps are not linear.
     pair_start: Vec<u32>,
     pair_fixed: Vec<[i16; 2]>,
+    /// The leading groups of 8 pairs that fit 16 source bytes (the AVX2 gather by byte
+    /// shuffle); empty where `pair_start` is.
+    #[cfg(target_arch = "x86_64")]
+    pair_groups: Vec<super::avx2::PairGroup>,
 }
 
 /// The taps of one axis of `dst` samples from `src` under `method` (`scale` = src/dst).
@@ -459,6 +463,8 @@ fn axis_taps(src: usize, dst: usize, scale: f64, method: Interpolation) -> Taps 
         index,
         weight,
         fixed,
+        #[cfg(target_arch = "x86_64")]
+        pair_groups: super::avx2::pair_groups(&pair_start, src),
         pair_start,
         pair_fixed,
     }
@@ -594,7 +600,16 @@ fn h_linear_u8<const C: usize>(row: &[u8], tx: &Taps, out: &mut [i16]) {
     if C == 1 && row.len() >= 2 && tx.pair_start.len() == out.len() {
         // One channel: adjacent pairs, one bounds check (start ≤ len − 2 by construction).
         let last = row.len() - 2;
-        for ((o, &x), w) in out.iter_mut().zip(&tx.pair_start).zip(&tx.pair_fixed) {
+        #[cfg(target_arch = "x86_64")]
+        let done = super::avx2::h_pairs_u8(row, &tx.pair_groups, &tx.pair_fixed, out).unwrap_or(0);
+        #[cfg(not(target_arch = "x86_64"))]
+        let done = 0;
+        let out = &mut out[done..];
+        for ((o, &x), w) in out
+            .iter_mut()
+            .zip(&tx.pair_start[done..])
+            .zip(&tx.pair_fixed[done..])
+        {
             let x = (x as usize).min(last);
             let s = i32::from(row[x]) * i32::from(w[0]) + i32::from(row[x + 1]) * i32::from(w[1]);
             *o = (s >> 4) as i16;
@@ -1265,6 +1280,51 @@ mod tests {
         let input = to_f32(&image);
         let whole = total(input.as_f32().unwrap());
         assert!((total(float.as_f32().unwrap()) - whole).abs() < 1e-3);
+    }
+
+    /// The one-channel pass (byte-shuffle gather under AVX2, scalar pairs otherwise) against
+    /// the tap formula, for shrinking and enlarging scales and widths around the 8-output
+    /// groups.
+    #[test]
+    fn one_channel_linear_pass_matches_the_tap_formula() {
+        let mut grouped = 0;
+        for (sw, dw) in [
+            (1920usize, 1600usize),
+            (100, 83),
+            (64, 40),
+            (37, 20),
+            (50, 97),
+            (300, 100),
+            (9, 8),
+            (2, 5),
+        ] {
+            let row: Vec<u8> = randoms(sw as u64 * 3 + dw as u64, sw)
+                .iter()
+                .map(|r| (r * 256.0) as u8)
+                .collect();
+            let tx = axis_taps(sw, dw, sw as f64 / dw as f64, Interpolation::Bilinear);
+            #[cfg(target_arch = "x86_64")]
+            {
+                grouped += tx.pair_groups.len();
+            }
+            let mut got = vec![0i16; dw];
+            h_linear_u8::<1>(&row, &tx, &mut got);
+            let expected: Vec<i16> = tx
+                .index
+                .chunks_exact(2)
+                .zip(tx.fixed.chunks_exact(2))
+                .map(|(i, w)| {
+                    ((i32::from(row[i[0]]) * w[0] + i32::from(row[i[1]]) * w[1]) >> 4) as i16
+                })
+                .collect();
+            assert_eq!(got, expected, "{sw} → {dw}");
+        }
+        #[cfg(target_arch = "x86_64")]
+        assert!(
+            grouped > 200,
+            "the grouped path was not exercised: {grouped}"
+        );
+        let _ = grouped;
     }
 
     #[test]
