@@ -19,6 +19,9 @@ fn main() -> ExitCode {
     // Operator panics are caught by the scheduler and reported as node errors; the default hook
     // would print a second, raw message (and a backtrace hint) for each.
     std::panic::set_hook(Box::new(|_| {}));
+    // Operators allocate megabytes of levels and intermediates per call: keep freed blocks
+    // for the next call instead of faulting fresh pages in every time.
+    ocellus_engine::buffer::keep_freed_memory();
     let args = cli::Cli::parse();
     init_tracing(args.verbose);
     remove_partial_files_on_interrupt();

@@ -26,6 +26,7 @@
 //! The test pattern is not OpenCV's table: [`orb_pattern`] learns one, following the paper's
 //! greedy decorrelation, on keypoints of a procedurally drawn training image (see its docs).
 
+use std::borrow::Cow;
 use std::sync::{Arc, Mutex, OnceLock};
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
@@ -264,23 +265,19 @@ fn describe_at(
 }
 
 /// Stable sort by decreasing response, then keep the first `n` and every later one tied with
-/// the n-th (OpenCV's `retainBest`).
+/// the n-th (OpenCV's `retainBest`). The n-th response is found by selection first, so only
+/// what is kept gets sorted.
 fn retain_best<T>(items: &mut Vec<T>, n: usize, response: impl Fn(&T) -> f64) {
-    if items.len() <= n {
-        items.sort_by(|a, b| response(b).total_cmp(&response(a)));
-        return;
-    }
-    items.sort_by(|a, b| response(b).total_cmp(&response(a)));
     if n == 0 {
         items.clear();
         return;
     }
-    let boundary = response(&items[n - 1]);
-    let end = n + items[n..]
-        .iter()
-        .take_while(|t| response(t) >= boundary)
-        .count();
-    items.truncate(end);
+    if items.len() > n {
+        let mut responses: Vec<f64> = items.iter().map(&response).collect();
+        let (_, &mut boundary, _) = responses.select_nth_unstable_by(n - 1, |a, b| b.total_cmp(a));
+        items.retain(|t| response(t) >= boundary);
+    }
+    items.sort_by(|a, b| response(b).total_cmp(&response(a)));
 }
 
 /// Number of keypoints each of `levels` levels may keep.
@@ -302,9 +299,9 @@ fn level_budgets(n: usize, levels: usize, scale_factor: f64) -> Vec<usize> {
 /// Keypoints and descriptor bytes of one level.
 type LevelOutput = (Vec<Keypoint>, Vec<u8>);
 
-/// One level of the pyramid.
-struct Level {
-    image: Image,
+/// One level of the pyramid (the input level borrows a gray u8 input).
+struct Level<'a> {
+    image: Cow<'a, Image>,
     w: usize,
     h: usize,
     /// Level-0 pixels per level pixel, per axis (`W / w`, `H / h`).
@@ -319,12 +316,17 @@ fn gray_image(data: Vec<u8>, w: usize, h: usize) -> Result<Image, String> {
 }
 
 /// The pyramid of gray u8 levels (stops early at an empty level).
-fn pyramid(gray: Vec<u8>, w: usize, h: usize, p: &OrbParams) -> Result<Vec<Level>, String> {
+fn pyramid<'a>(
+    source: Cow<'a, Image>,
+    w: usize,
+    h: usize,
+    p: &OrbParams,
+) -> Result<Vec<Level<'a>>, String> {
     let first = p.first_level as usize;
     // The input level itself; moved into its level (levels before it are enlarged from it
     // first, later ones shrunk from their predecessor).
-    let mut source = Some(gray_image(gray, w, h)?);
-    let mut levels: Vec<Level> = Vec::with_capacity(p.n_levels as usize);
+    let mut source = Some(source);
+    let mut levels: Vec<Level<'a>> = Vec::with_capacity(p.n_levels as usize);
     for l in 0..p.n_levels as usize {
         let scale = p.scale_factor.powi(l as i32 - first as i32);
         let lw = (w as f64 / scale).round_ties_even() as usize;
@@ -336,10 +338,14 @@ fn pyramid(gray: Vec<u8>, w: usize, h: usize, p: &OrbParams) -> Result<Vec<Level
             (std::cmp::Ordering::Equal, _, _) => source
                 .take()
                 .ok_or("internal: the input level was used twice")?,
-            (std::cmp::Ordering::Greater, Some(prev), _) => {
-                resize(&prev.image, Target::Size(lw, lh), Interpolation::Bilinear)?
+            (std::cmp::Ordering::Greater, Some(prev), _) => Cow::Owned(resize(
+                &prev.image,
+                Target::Size(lw, lh),
+                Interpolation::Bilinear,
+            )?),
+            (_, _, Some(src)) => {
+                Cow::Owned(resize(src, Target::Size(lw, lh), Interpolation::Bilinear)?)
             }
-            (_, _, Some(src)) => resize(src, Target::Size(lw, lh), Interpolation::Bilinear)?,
             _ => return Err("internal: no source for a pyramid level".into()),
         };
         levels.push(Level {
@@ -462,9 +468,14 @@ pub fn orb_with_pattern(
     if image.is_empty() {
         return Ok(empty());
     }
-    let gray = gray_u8(image);
-    let levels =
-        pyramid(gray.into_owned(), w, h, params).map_err(|e| OpError::input("image", e))?;
+    // A gray u8 input is the input level itself; anything else is converted once.
+    let source = match gray_u8(image) {
+        Cow::Borrowed(_) => Cow::Borrowed(image),
+        Cow::Owned(gray) => {
+            Cow::Owned(gray_image(gray, w, h).map_err(|e| OpError::input("image", e))?)
+        }
+    };
+    let levels = pyramid(source, w, h, params).map_err(|e| OpError::input("image", e))?;
     let budgets = level_budgets(
         params.max_features as usize,
         params.n_levels as usize,
