@@ -186,6 +186,8 @@ fn pair(method: &str, args: &[String]) {
 }
 
 fn main() {
+    // The CLI's allocator settings (freed blocks reused across calls).
+    ocellus_engine::buffer::keep_freed_memory();
     let args: Vec<String> = std::env::args().collect();
     let method = match args.get(1).map(String::as_str) {
         Some(m @ ("sift" | "orb")) => m,

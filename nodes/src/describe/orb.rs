@@ -40,7 +40,7 @@ use crate::detect::fast::fast9_region;
 use crate::detect::gray::gray_u8;
 use crate::filter::border::BorderMode;
 use crate::filter::gaussian::gaussian_blur;
-use crate::filter::resize::{Interpolation, Target, resize, round_small};
+use crate::filter::resize::{Interpolation, Target, resize};
 
 /// Harris constant of the keypoint ranking (OpenCV's `HARRIS_K`).
 const HARRIS_K: f64 = 0.04;
@@ -181,26 +181,33 @@ fn harris_at(img: &[u8], w: usize, x: usize, y: usize) -> f64 {
 }
 
 /// Intensity-centroid orientation at `(x, y)` over the disc `umax`, degrees in [0, 360).
+///
+/// Rows `±v` are summed together as slices (32-bit sums per row pair, which cannot overflow
+/// for a patch of up to 255 px, then 64-bit totals), so the inner loop vectorizes.
 fn ic_angle(img: &[u8], w: usize, x: usize, y: usize, umax: &[i32]) -> f32 {
     let centre = y * w + x;
-    let r0 = umax[0] as isize;
+    let r0 = umax[0] as usize;
     let mut m10 = 0i64;
     let mut m01 = 0i64;
-    for u in -r0..=r0 {
-        m10 += u as i64 * i64::from(img[(centre as isize + u) as usize]);
+    let middle = &img[centre - r0..=centre + r0];
+    let mut row_m10 = 0i32;
+    for (k, &p) in middle.iter().enumerate() {
+        row_m10 += (k as i32 - r0 as i32) * i32::from(p);
     }
+    m10 += i64::from(row_m10);
     for (v, &d) in umax.iter().enumerate().skip(1) {
-        let top = centre - v * w;
-        let bottom = centre + v * w;
-        let d = d as isize;
-        let mut sum_v = 0i64;
-        for u in -d..=d {
-            let t = i64::from(img[(top as isize + u) as usize]);
-            let b = i64::from(img[(bottom as isize + u) as usize]);
-            m10 += u as i64 * (t + b);
+        let d = d as usize;
+        let top = &img[centre - v * w - d..=centre - v * w + d];
+        let bottom = &img[centre + v * w - d..=centre + v * w + d];
+        let mut row_m10 = 0i32;
+        let mut sum_v = 0i32;
+        for (k, (&t, &b)) in top.iter().zip(bottom).enumerate() {
+            let (t, b) = (i32::from(t), i32::from(b));
+            row_m10 += (k as i32 - d as i32) * (t + b);
             sum_v += b - t;
         }
-        m01 += v as i64 * sum_v;
+        m10 += i64::from(row_m10);
+        m01 += v as i64 * i64::from(sum_v);
     }
     let mut angle = (m01 as f64).atan2(m10 as f64).to_degrees();
     if angle < 0.0 {
@@ -208,6 +215,16 @@ fn ic_angle(img: &[u8], w: usize, x: usize, y: usize, umax: &[i32]) -> f32 {
     }
     let angle = angle as f32;
     if angle >= 360.0 { 0.0 } else { angle }
+}
+
+/// `x` rounded to the nearest integer, ties to even, for `|x| < 2²²`: the bits of
+/// `x + 1.5·2²³` hold the rounded value in their low bits (the same value as
+/// `round_small(x) as i32`, without a saturating float-to-integer conversion, so loops over it
+/// vectorize).
+#[inline(always)]
+fn round_to_int(x: f32) -> i32 {
+    const MAGIC: f32 = 12_582_912.0;
+    (x + MAGIC).to_bits() as i32 - MAGIC.to_bits() as i32
 }
 
 /// Steered descriptor at `(x, y)` of the smoothed level: the pattern's points (groups of
@@ -228,12 +245,13 @@ fn describe_at(
     let (sin, cos) = angle_deg.to_radians().sin_cos();
     let wi = w as isize;
     offsets.clear();
-    offsets.extend(pattern.iter().map(|&(px, py)| {
+    offsets.resize(pattern.len(), 0);
+    for (o, &(px, py)) in offsets.iter_mut().zip(pattern) {
         let (px, py) = (px as f32, py as f32);
-        let col = round_small(px * cos - py * sin) as isize;
-        let row = round_small(px * sin + py * cos) as isize;
-        row * wi + col
-    }));
+        let col = round_to_int(px * cos - py * sin) as isize;
+        let row = round_to_int(px * sin + py * cos) as isize;
+        *o = row * wi + col;
+    }
     let base = (y * w + x) as isize;
     let value = |o: isize| img[(base + o) as usize];
     if wta_k == 2 {
@@ -915,6 +933,21 @@ impl Operator for Orb {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::filter::resize::round_small;
+
+    #[test]
+    fn round_to_int_matches_round_small() {
+        let mut x = -300.0f32;
+        while x <= 300.0 {
+            assert_eq!(round_to_int(x), round_small(x) as i32, "{x}");
+            x += 0.125;
+        }
+        for x in [
+            0.5f32, 1.5, 2.5, -0.5, -1.5, -2.5, 0.49999997, 180.5, -180.5,
+        ] {
+            assert_eq!(round_to_int(x), round_small(x) as i32, "{x}");
+        }
+    }
     use crate::filter::border::BorderMode;
     use crate::filter::warp::{Transform, WarpInterpolation, WarpOptions, warp};
 
