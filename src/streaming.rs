@@ -63,7 +63,10 @@ const FRAME_BUFFER_BYTES: usize = 1 << 20;
 /// threshold of 1 MiB keeps them within ±7 %, at no measurable cost in frames/s at 2 threads
 /// (paired 200-frame runs, ratio 0.99; 2.6 s more system time). On one thread the heaps are reused in a
 /// steady order and stay flat without it (−0.8 % to +3.4 %), while the zeroing would cost 10 %
-/// of the run time, so one thread keeps glibc's default. A threshold of 4 MiB leaves the
+/// of the run time, so one thread keeps the CLI's settings (`buffer::keep_freed_memory`: a
+/// fixed 32 MiB threshold, under which frame buffers come from the heaps as they did under
+/// glibc's raised default; the figures above were measured under that default, before the CLI
+/// fixed it). A threshold of 4 MiB leaves the
 /// 2.8 MB colour frames and 3.7 MB float planes in the heaps and does not stop the rise.
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn fix_mmap_threshold() {

@@ -50,7 +50,7 @@ const TARGET: Duration = Duration::from_millis(1500);
 type Case = (&'static str, &'static str, Box<dyn Fn(&Image) + Sync>);
 
 fn main() {
-    // The allocator settings of the CLI and the Python module (freed blocks are reused, not
+    // The allocator settings of the CLI (freed blocks are reused, not
     // faulted in again); `OCELLUS_BENCH_ALLOCATOR=default` measures with glibc's defaults.
     if std::env::var("OCELLUS_BENCH_ALLOCATOR").as_deref() != Ok("default") {
         ocellus_engine::buffer::keep_freed_memory();

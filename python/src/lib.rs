@@ -577,8 +577,6 @@ fn reconstruction<'py>(
 
 #[pymodule]
 fn _ocellus(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    // Reuse freed buffers across calls, as the CLI does (see the engine's `buffer` docs).
-    ocellus_engine::buffer::keep_freed_memory();
     m.add_class::<PyGraph>()?;
     m.add_function(wrap_pyfunction!(run_task, m)?)?;
     m.add_function(wrap_pyfunction!(ops_json, m)?)?;
