@@ -4,8 +4,10 @@
 //! [`fast9`] scans each row in vectors of [`LANES`] centres with saturated u8 arithmetic: the
 //! four compass pixels reject most vectors (an arc of 9 contains two adjacent ones, both
 //! brighter than `v + t` or both darker than `v − t`); the others get, per lane, the best arc's
-//! smallest saturated difference, which decides the corner test and is its score. Scores go to a small per-band buffer and non-maximum
-//! suppression compares each corner with its 8 neighbours. Bands of [`BAND_ROWS`] rows run in
+//! smallest saturated difference, which decides the corner test and is its score. Under AVX2 the
+//! same step runs in `fast_avx2` (intrinsics, registers only, one polarity at a time). Scores go
+//! to a small per-band buffer and non-maximum suppression compares each corner with its 8
+//! neighbours. Bands of [`BAND_ROWS`] rows run in
 //! parallel and recompute the score rows just outside them, so the result does not depend on the
 //! thread count.
 
@@ -249,7 +251,9 @@ fn fast_vector(
 ///
 /// Vectors of [`LANES`] centres, the last one overlapping its predecessor; see
 /// [`fast_vector`].
-#[multiversion::multiversion(targets("x86_64+avx2", "x86_64+sse4.1"))]
+/// Where AVX2 is available, `fast_avx2::fast_row` runs instead (bit-identical, tested), so this
+/// portable kernel is compiled for baseline x86-64 and SSE4.1 only.
+#[multiversion::multiversion(targets("x86_64+sse4.1"))]
 fn fast_row(
     ring: &[&[u8]; 16],
     centre: &[u8],
