@@ -6,9 +6,12 @@
 //!   [`TILE`] rows stored word-major (`tile[w][j]`), so the Hamming distances of one query to a
 //!   whole tile are one vertical loop `dist[j] += popcount(q[w] ^ tile[w][j])` that compiles to
 //!   SIMD popcounts. Distances are exact integers.
-//! - Float descriptors use `‖q − t‖² = ‖q‖² + ‖t‖² − 2 q·t` with f32 dot products computed four
-//!   queries × two train rows at a time in eight-lane accumulators (a small matrix product,
-//!   blocked over train rows for cache). That value can be off by rounding (cancellation), so it
+//! - Float descriptors use `‖q − t‖² = ‖q‖² + ‖t‖² − 2 q·t` with f32 dot products as a small
+//!   matrix product, blocked over train rows for cache: with AVX2 and FMA, four queries × sixteen
+//!   train rows at a time, the train rows packed in panels of eight so that each broadcast
+//!   query element updates eight dot products in one fused multiply–add (`float_avx2`);
+//!   otherwise four queries × two train rows in eight-lane accumulators. That value can be off
+//!   by rounding (cancellation), so it
 //!   only selects candidates: every train row whose approximate distance is within twice a
 //!   proven rounding bound of the approximate second-nearest is re-measured with
 //!   [`l2_squared_exact`], and the two nearest are picked from those exact values. The result
@@ -40,6 +43,12 @@ const TRAIN_BLOCK: usize = 64;
 
 /// Queries per float micro-kernel call.
 const QR: usize = 4;
+
+// The AVX2 kernel takes the same query groups, and train blocks that start on its panels.
+#[cfg(target_arch = "x86_64")]
+const _: () = assert!(
+    QR == super::float_avx2::QUERIES && TRAIN_BLOCK.is_multiple_of(super::float_avx2::PANEL)
+);
 
 /// Beyond this magnitude the f32 norms could overflow: the float kernel measures every pair
 /// exactly instead.
@@ -566,6 +575,9 @@ fn knn2_float(q: &[f32], t: &[f32], dim: usize) -> Vec<Top2> {
     // each contributing at most one unit roundoff of `‖q‖² + ‖t‖²`; doubled for safety, plus
     // an absolute term for underflow.
     let unit = (dim as f64 + 16.0) * f64::powi(2.0, -23);
+    #[cfg(target_arch = "x86_64")]
+    let panels =
+        super::float_avx2::available().then(|| super::float_avx2::Panels::new(t, dim, &tnorm));
     let mut out = vec![Top2::default(); nq];
     out.par_chunks_mut(QUERY_CHUNK)
         .enumerate()
@@ -583,6 +595,21 @@ fn knn2_float(q: &[f32], t: &[f32], dim: usize) -> Vec<Top2> {
                 let t1 = (t0 + TRAIN_BLOCK).min(nt);
                 let t1_pad = t1.next_multiple_of(2);
                 for g in (0..n_pad).step_by(QR) {
+                    #[cfg(target_arch = "x86_64")]
+                    if let Some(panels) = &panels
+                        && super::float_avx2::approx_block(
+                            &qpad[g * dp..(g + QR) * dp],
+                            dp,
+                            &qnorm[g..g + QR],
+                            panels,
+                            &mut approx[g * nt..(g + QR) * nt],
+                            nt,
+                            t0,
+                            t1,
+                        )
+                    {
+                        continue;
+                    }
                     approx_block(
                         &qpad[g * dp..(g + QR) * dp],
                         &qnorm[g..g + QR],
@@ -781,6 +808,81 @@ mod tests {
             let options = MatchOptions { ratio, cross_check: cross, max_distance: max };
             run(&q, &t, Norm::Auto, &options);
             run(&q, &t, Norm::L2Squared, &options);
+        }
+    }
+
+    /// The AVX2 kernel's approximate distances and the portable kernel's both lie within the
+    /// matcher's rounding bound of the exact value, for any dimension, block and tail.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_kernel_stays_within_the_rounding_bound() {
+        use crate::matching::float_avx2;
+        if !float_avx2::available() {
+            return;
+        }
+        let mut next = stream(11);
+        for (dim, nt) in [
+            (128usize, 77usize),
+            (1, 9),
+            (7, 8),
+            (8, 17),
+            (70, 64),
+            (33, 130),
+            (128, 3),
+        ] {
+            let dp = dim.next_multiple_of(8);
+            let mut value = || (next() % 1000) as f32 * 0.37 - 50.0;
+            let q: Vec<f32> = (0..QR * dim).map(|_| value()).collect();
+            let t: Vec<f32> = (0..nt * dim).map(|_| value()).collect();
+            let mut qpad = vec![0.0f32; QR * dp];
+            for (dst, src) in qpad.chunks_exact_mut(dp).zip(q.chunks_exact(dim)) {
+                dst[..dim].copy_from_slice(src);
+            }
+            let nt_pad = nt.next_multiple_of(2);
+            let mut tpad = vec![0.0f32; nt_pad * dp];
+            for (dst, src) in tpad.chunks_exact_mut(dp).zip(t.chunks_exact(dim)) {
+                dst[..dim].copy_from_slice(src);
+            }
+            let qnorm: Vec<f32> = qpad.chunks_exact(dp).map(|r| dot(r, r)).collect();
+            let tnorm: Vec<f32> = tpad.chunks_exact(dp).map(|r| dot(r, r)).collect();
+            let panels = float_avx2::Panels::new(&t, dim, &tnorm);
+            let (mut fast, mut portable) = (vec![f32::NAN; QR * nt], vec![f32::NAN; QR * nt]);
+            for t0 in (0..nt).step_by(TRAIN_BLOCK.min(16)) {
+                let t1 = (t0 + 16).min(nt);
+                assert!(float_avx2::approx_block(
+                    &qpad, dp, &qnorm, &panels, &mut fast, nt, t0, t1
+                ));
+                approx_block(
+                    &qpad,
+                    &qnorm,
+                    &tpad[t0 * dp..t1.next_multiple_of(2) * dp],
+                    &tnorm[t0..t1.next_multiple_of(2)],
+                    dp,
+                    &mut portable,
+                    nt,
+                    t0,
+                    t1,
+                );
+            }
+            let tmax = tnorm.iter().fold(0.0f64, |m, &v| m.max(f64::from(v)));
+            let unit = (dim as f64 + 16.0) * f64::powi(2.0, -23);
+            for i in 0..QR {
+                let bound = unit * (f64::from(qnorm[i]) + tmax) + 1e-30;
+                for j in 0..nt {
+                    let exact =
+                        l2_squared_exact(&q[i * dim..(i + 1) * dim], &t[j * dim..(j + 1) * dim]);
+                    for (kernel, v) in [
+                        ("avx2", fast[i * nt + j]),
+                        ("portable", portable[i * nt + j]),
+                    ] {
+                        let err = (f64::from(v) - exact).abs();
+                        assert!(
+                            err <= bound,
+                            "{kernel} dim {dim} ({i}, {j}): {v} vs {exact}"
+                        );
+                    }
+                }
+            }
         }
     }
 

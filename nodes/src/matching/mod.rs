@@ -14,6 +14,8 @@
 pub mod approximate;
 pub mod brute_force;
 pub mod draw;
+#[cfg(target_arch = "x86_64")]
+mod float_avx2;
 pub mod patch;
 
 use std::borrow::Cow;
