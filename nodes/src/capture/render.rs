@@ -9,7 +9,8 @@ use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Scene, Value};
 use ocellus_engine::{param_enum, params};
 
-use crate::render::raster::{Cull, RasterOptions, rasterize};
+use crate::render::raster::{Cull, RasterOptions, SceneRaster, rasterize};
+use crate::render::scene::View;
 use crate::render::trace::{Integrator, TraceOptions, trace_scene};
 
 param_enum! {
@@ -82,6 +83,42 @@ pub fn render_frame(
             })
         }
     }
+}
+
+/// Every camera of `scene` in order, as [`render_frame`] renders each; the rasterizer prepares
+/// the scene (textures, shadow maps, environment) once for all cameras. An error names the
+/// camera it came from (scene-wide problems are reported at camera 0).
+pub fn render_frames(
+    scene: &Scene,
+    params: &CaptureRenderParams,
+) -> Result<Vec<Frame>, (usize, String)> {
+    if params.renderer != Renderer::Rasterize || scene.cameras.is_empty() {
+        return (0..scene.cameras.len())
+            .map(|i| render_frame(scene, i, params).map_err(|e| (i, e)))
+            .collect();
+    }
+    let options = RasterOptions {
+        cull: Cull::None,
+        samples: params.samples,
+        ..RasterOptions::default()
+    };
+    let prepared = SceneRaster::new(scene, &options).map_err(|e| (0, e))?;
+    scene
+        .cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let out = View::new(c)
+                .and_then(|view| prepared.render(&view))
+                .map_err(|e| (i, e))?;
+            Ok(Frame {
+                color: image(out.width, out.height, Channels::Rgb, out.color)
+                    .map_err(|e| (i, e))?,
+                depth: image(out.width, out.height, Channels::Gray, out.depth)
+                    .map_err(|e| (i, e))?,
+            })
+        })
+        .collect()
 }
 
 /// `capture.render`. See [`render_frame`].
@@ -164,9 +201,9 @@ impl Operator for CaptureRender {
         };
         let mut images = Vec::with_capacity(scene.cameras.len());
         let mut depths = Vec::with_capacity(scene.cameras.len());
-        for i in 0..scene.cameras.len() {
-            let frame = render_frame(scene, i, &self.params)
-                .map_err(|e| OpError::failed(format!("camera {i}: {e}")))?;
+        let frames = render_frames(scene, &self.params)
+            .map_err(|(i, e)| OpError::failed(format!("camera {i}: {e}")))?;
+        for frame in frames {
             images.push(Value::image(frame.color));
             depths.push(Value::image(frame.depth));
         }
@@ -193,6 +230,44 @@ mod tests {
     use super::*;
     use crate::io::read_scene::parse_scene;
     use crate::render::scene::View;
+
+    /// Rendering all cameras from one prepared scene gives each camera's frame bit for bit as
+    /// rendering it alone (textured materials, a shadow-mapped light, an environment).
+    #[test]
+    fn shared_preparation_equals_one_camera_at_a_time() {
+        let scene = parse_scene(
+            r#"(materials: [(name: "noise", shading: lambert,
+                    albedo_texture: Some((noise: (cells: 16, size: 128, octaves: 2, seed: 3,
+                        a: (0.9, 0.8, 0.7), b: (0.1, 0.2, 0.3)), filter: anisotropic)))],
+                objects: [
+                    (shape: Plane(point: (0, 0, 0), normal: (0, 1, 0), half_extent: 2.0), material: "noise"),
+                    (shape: Sphere(center: (0.3, 0.5, 0), radius: 0.5), material: "noise")],
+                lights: [Directional(direction: (0.3, -1.0, -0.4), irradiance: (2, 2, 2)),
+                         Environment(radiance: (0.5, 0.5, 0.5))],
+                cameras: [(width: 48, height: 32, eye: (0, 1.5, 3), target: (0, 0.3, 0)),
+                          (width: 40, height: 40, eye: (3, 1, 2), target: (0, 0.3, 0)),
+                          (width: 24, height: 30, eye: (-2, 2, -1), target: (0, 0.3, 0))])"#,
+            std::path::Path::new("scene.ron"),
+        )
+        .unwrap()
+        .scene;
+        let params = CaptureRenderParams {
+            renderer: Renderer::Rasterize,
+            samples: 4,
+            spp: 1,
+            seed: 0,
+        };
+        let frames = render_frames(&scene, &params).unwrap();
+        assert_eq!(frames.len(), 3);
+        for (i, frame) in frames.iter().enumerate() {
+            let alone = render_frame(&scene, i, &params).unwrap();
+            assert_eq!(frame.color.as_f32(), alone.color.as_f32(), "camera {i}");
+            assert_eq!(frame.depth.as_f32(), alone.depth.as_f32(), "camera {i}");
+        }
+        // The scene is textured and lit: the frames are not uniform.
+        let c = frames[0].color.as_f32().unwrap();
+        assert!(c.iter().any(|&v| (v - c[c.len() / 2]).abs() > 0.05));
+    }
 
     /// Rendered frames come with cameras that project the scene where it appears: the
     /// sphere's centre projects to the centre of its image disk, and the depth at that pixel

@@ -2044,12 +2044,12 @@ struct Renderer<'a> {
     scene: &'a Scene,
     view: &'a View,
     proj: Projector,
-    prep: Prepared<'a>,
+    prep: &'a Prepared<'a>,
     clip: Vec<Vec<V3>>,
     prims: Vec<Prim>,
-    textures: Vec<MaterialTextures>,
-    lights: Vec<DirectLight>,
-    env: Environment,
+    textures: &'a [MaterialTextures],
+    lights: &'a [DirectLight],
+    env: &'a Environment,
     cull: Cull,
     pattern: &'static [[i64; 2]],
     background: V3,
@@ -2263,7 +2263,7 @@ impl Renderer<'_> {
         }
         let metal = metal.clamp(0.0, 1.0);
         let (spec, sh) = (f64::from(m.specular), f64::from(m.shininess));
-        for light in &self.lights {
+        for light in self.lights {
             if let (Shading::Gouraud, Some(c)) = (m.shading, &s.corners) {
                 // Lighting at the three corners (Lambert + Blinn–Phong), interpolated;
                 // the shadow is looked up per pixel.
@@ -2538,121 +2538,156 @@ pub fn rasterize_view(
     view: &View,
     options: &RasterOptions,
 ) -> Result<RasterOutput, String> {
-    options.validate()?;
-    validate_scene(scene)?;
-    let prep = prepare(scene);
-    let textures = scene
-        .materials
-        .iter()
-        .map(MaterialTextures::new)
-        .collect::<Result<Vec<_>, _>>()?;
-    let bounds = if options.shadow_map_size > 0 {
-        scene_bounds(&prep)
-    } else {
-        None
-    };
-    let lights: Vec<DirectLight> = scene
-        .lights
-        .iter()
-        .filter_map(|l| match l {
-            Light::Point {
-                position,
-                intensity,
-            } => Some(DirectLight::Point {
-                position: *position,
-                intensity: f3(*intensity),
-            }),
-            Light::Directional {
-                direction,
-                irradiance,
-            } => Some(DirectLight::Directional {
-                to_light: mul(normalize(*direction), -1.0),
-                irradiance: f3(*irradiance),
-                shadow: bounds.map(|b| {
-                    ShadowMap::build(&prep, b, *direction, options.shadow_map_size as usize)
+    SceneRaster::new(scene, options)?.render(view)
+}
+
+/// What rasterizing a scene needs whatever the view (validated scene, flattened geometry,
+/// converted textures and their mipmaps, lights with their shadow maps, the environment),
+/// built once so that several views of one scene share it: [`SceneRaster::render`] equals
+/// [`rasterize_view`] with the same scene and options.
+pub struct SceneRaster<'a> {
+    scene: &'a Scene,
+    options: RasterOptions,
+    prep: Prepared<'a>,
+    textures: Vec<MaterialTextures>,
+    lights: Vec<DirectLight>,
+    env: Environment,
+}
+
+impl<'a> SceneRaster<'a> {
+    /// Validates `options` and `scene` and prepares everything view-independent (errors as
+    /// [`rasterize_view`]'s).
+    pub fn new(scene: &'a Scene, options: &RasterOptions) -> Result<SceneRaster<'a>, String> {
+        options.validate()?;
+        validate_scene(scene)?;
+        let prep = prepare(scene);
+        let textures = scene
+            .materials
+            .iter()
+            .map(MaterialTextures::new)
+            .collect::<Result<Vec<_>, _>>()?;
+        let bounds = if options.shadow_map_size > 0 {
+            scene_bounds(&prep)
+        } else {
+            None
+        };
+        let lights: Vec<DirectLight> = scene
+            .lights
+            .iter()
+            .filter_map(|l| match l {
+                Light::Point {
+                    position,
+                    intensity,
+                } => Some(DirectLight::Point {
+                    position: *position,
+                    intensity: f3(*intensity),
                 }),
-            }),
-            Light::Area {
-                corner,
-                edge_u,
-                edge_v,
-                radiance,
-            } => {
-                let n = cross(*edge_u, *edge_v);
-                Some(DirectLight::Area {
-                    centre: add(*corner, mul(add(*edge_u, *edge_v), 0.5)),
-                    normal: normalize(n),
-                    area: norm(n),
-                    radiance: f3(*radiance),
-                })
-            }
-            Light::Environment { .. } => None,
+                Light::Directional {
+                    direction,
+                    irradiance,
+                } => Some(DirectLight::Directional {
+                    to_light: mul(normalize(*direction), -1.0),
+                    irradiance: f3(*irradiance),
+                    shadow: bounds.map(|b| {
+                        ShadowMap::build(&prep, b, *direction, options.shadow_map_size as usize)
+                    }),
+                }),
+                Light::Area {
+                    corner,
+                    edge_u,
+                    edge_v,
+                    radiance,
+                } => {
+                    let n = cross(*edge_u, *edge_v);
+                    Some(DirectLight::Area {
+                        centre: add(*corner, mul(add(*edge_u, *edge_v), 0.5)),
+                        normal: normalize(n),
+                        area: norm(n),
+                        radiance: f3(*radiance),
+                    })
+                }
+                Light::Environment { .. } => None,
+            })
+            .collect();
+        let env = Environment::new(scene)?;
+        Ok(SceneRaster {
+            scene,
+            options: options.clone(),
+            prep,
+            textures,
+            lights,
+            env,
         })
-        .collect();
-    let env = Environment::new(scene)?;
-    let proj = Projector::Perspective {
-        view: view.clone(),
-        near: options.near,
-    };
-    let clip = clip_vertices(&prep, &proj);
-    let pattern = options.pattern();
-    let reach = if options.samples == 4 { 96 } else { 0 };
-    let ctx = SetupCtx::new(&proj, options.cull, reach);
-    let mut prims = setup_objects(&prep, &clip, &ctx, |o| prep.opaque[o]);
-    let n_opaque = prims.len();
-    let mut transparent: Vec<(f64, Prim)> = setup_objects(&prep, &clip, &ctx, |o| !prep.opaque[o])
-        .into_iter()
-        .map(|p| (centroid_depth(&p, &prep, view), p))
-        .collect();
-    // Back to front; the sort is stable, so equal depths keep scene order.
-    transparent.sort_by(|a, b| b.0.total_cmp(&a.0));
-    prims.extend(transparent.into_iter().map(|(_, p)| p));
-    let tiles = Tiles::new(view.width, view.height);
-    let opaque_bins = bin(&prims[..n_opaque], &tiles, 0);
-    let transparent_bins = bin(&prims[n_opaque..], &tiles, n_opaque as u32);
-    let renderer = Renderer {
-        scene,
-        view,
-        proj,
-        prep,
-        clip,
-        prims,
-        textures,
-        lights,
-        env,
-        cull: options.cull,
-        pattern,
-        background: f3(options.background),
-    };
-    let outs: Vec<TileOut> = (0..tiles.count())
-        .into_par_iter()
-        .map(|t| renderer.render_tile(tiles.rect(t), &opaque_bins[t], &transparent_bins[t]))
-        .collect();
-    let (w, h) = (view.width, view.height);
-    let mut out = RasterOutput {
-        width: w,
-        height: h,
-        color: vec![0.0; 3 * w * h],
-        depth: vec![f32::INFINITY; w * h],
-        normals: vec![0.0; 3 * w * h],
-        ids: vec![-1.0; w * h],
-        hits: 0,
-    };
-    for (t, o) in outs.iter().enumerate() {
-        let [x0, y0, x1, y1] = tiles.rect(t);
-        for y in y0..y1 {
-            for x in x0..x1 {
-                let p = (y - y0) * TILE + (x - x0);
-                let q = y * w + x;
-                out.color[3 * q..3 * q + 3].copy_from_slice(&o.color[p]);
-                out.normals[3 * q..3 * q + 3].copy_from_slice(&o.normal[p]);
-                out.depth[q] = o.depth[p];
-                out.ids[q] = o.id[p];
-            }
-        }
-        out.hits += o.hits;
     }
-    Ok(out)
+
+    /// Rasterizes the prepared scene as seen by `view`.
+    pub fn render(&self, view: &View) -> Result<RasterOutput, String> {
+        let (scene, options, prep) = (self.scene, &self.options, &self.prep);
+        let proj = Projector::Perspective {
+            view: view.clone(),
+            near: options.near,
+        };
+        let clip = clip_vertices(prep, &proj);
+        let pattern = options.pattern();
+        let reach = if options.samples == 4 { 96 } else { 0 };
+        let ctx = SetupCtx::new(&proj, options.cull, reach);
+        let mut prims = setup_objects(&prep, &clip, &ctx, |o| prep.opaque[o]);
+        let n_opaque = prims.len();
+        let mut transparent: Vec<(f64, Prim)> =
+            setup_objects(&prep, &clip, &ctx, |o| !prep.opaque[o])
+                .into_iter()
+                .map(|p| (centroid_depth(&p, &prep, view), p))
+                .collect();
+        // Back to front; the sort is stable, so equal depths keep scene order.
+        transparent.sort_by(|a, b| b.0.total_cmp(&a.0));
+        prims.extend(transparent.into_iter().map(|(_, p)| p));
+        let tiles = Tiles::new(view.width, view.height);
+        let opaque_bins = bin(&prims[..n_opaque], &tiles, 0);
+        let transparent_bins = bin(&prims[n_opaque..], &tiles, n_opaque as u32);
+        let renderer = Renderer {
+            scene,
+            view,
+            proj,
+            prep,
+            clip,
+            prims,
+            textures: &self.textures,
+            lights: &self.lights,
+            env: &self.env,
+            cull: options.cull,
+            pattern,
+            background: f3(options.background),
+        };
+        let outs: Vec<TileOut> = (0..tiles.count())
+            .into_par_iter()
+            .map(|t| renderer.render_tile(tiles.rect(t), &opaque_bins[t], &transparent_bins[t]))
+            .collect();
+        let (w, h) = (view.width, view.height);
+        let mut out = RasterOutput {
+            width: w,
+            height: h,
+            color: vec![0.0; 3 * w * h],
+            depth: vec![f32::INFINITY; w * h],
+            normals: vec![0.0; 3 * w * h],
+            ids: vec![-1.0; w * h],
+            hits: 0,
+        };
+        for (t, o) in outs.iter().enumerate() {
+            let [x0, y0, x1, y1] = tiles.rect(t);
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    let p = (y - y0) * TILE + (x - x0);
+                    let q = y * w + x;
+                    out.color[3 * q..3 * q + 3].copy_from_slice(&o.color[p]);
+                    out.normals[3 * q..3 * q + 3].copy_from_slice(&o.normal[p]);
+                    out.depth[q] = o.depth[p];
+                    out.ids[q] = o.id[p];
+                }
+            }
+            out.hits += o.hits;
+        }
+        Ok(out)
+    }
 }
 
 /// For every pixel, how many primitives (clipped triangle pieces and impostors, opaque or
