@@ -2631,12 +2631,12 @@ impl<'a> SceneRaster<'a> {
         let pattern = options.pattern();
         let reach = if options.samples == 4 { 96 } else { 0 };
         let ctx = SetupCtx::new(&proj, options.cull, reach);
-        let mut prims = setup_objects(&prep, &clip, &ctx, |o| prep.opaque[o]);
+        let mut prims = setup_objects(prep, &clip, &ctx, |o| prep.opaque[o]);
         let n_opaque = prims.len();
         let mut transparent: Vec<(f64, Prim)> =
-            setup_objects(&prep, &clip, &ctx, |o| !prep.opaque[o])
+            setup_objects(prep, &clip, &ctx, |o| !prep.opaque[o])
                 .into_iter()
-                .map(|p| (centroid_depth(&p, &prep, view), p))
+                .map(|p| (centroid_depth(&p, prep, view), p))
                 .collect();
         // Back to front; the sort is stable, so equal depths keep scene order.
         transparent.sort_by(|a, b| b.0.total_cmp(&a.0));
