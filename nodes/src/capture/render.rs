@@ -9,7 +9,7 @@ use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Scene, Value};
 use ocellus_engine::{param_enum, params};
 
-use crate::render::raster::{Cull, RasterOptions, SceneRaster, rasterize};
+use crate::render::raster::{Cull, RasterOptions, RasterOutput, SceneRaster, rasterize};
 use crate::render::scene::View;
 use crate::render::trace::{Integrator, TraceOptions, trace_scene};
 
@@ -50,6 +50,23 @@ fn image(width: usize, height: usize, channels: Channels, data: Vec<f32>) -> Res
     Image::new(width, height, channels, PixelData::F32(data)).map_err(|e| e.to_string())
 }
 
+/// The rasterizer's settings for `capture.render`.
+fn raster_options(params: &CaptureRenderParams) -> RasterOptions {
+    RasterOptions {
+        cull: Cull::None,
+        samples: params.samples,
+        ..RasterOptions::default()
+    }
+}
+
+/// A rasterized view as a frame.
+fn raster_frame(out: RasterOutput) -> Result<Frame, String> {
+    Ok(Frame {
+        color: image(out.width, out.height, Channels::Rgb, out.color)?,
+        depth: image(out.width, out.height, Channels::Gray, out.depth)?,
+    })
+}
+
 /// Renders camera `camera` of `scene` with the chosen renderer.
 pub fn render_frame(
     scene: &Scene,
@@ -57,18 +74,7 @@ pub fn render_frame(
     params: &CaptureRenderParams,
 ) -> Result<Frame, String> {
     match params.renderer {
-        Renderer::Rasterize => {
-            let options = RasterOptions {
-                cull: Cull::None,
-                samples: params.samples,
-                ..RasterOptions::default()
-            };
-            let out = rasterize(scene, camera, &options)?;
-            Ok(Frame {
-                color: image(out.width, out.height, Channels::Rgb, out.color)?,
-                depth: image(out.width, out.height, Channels::Gray, out.depth)?,
-            })
-        }
+        Renderer::Rasterize => raster_frame(rasterize(scene, camera, &raster_options(params))?),
         Renderer::Trace => {
             let options = TraceOptions {
                 integrator: Integrator::Path,
@@ -97,26 +103,16 @@ pub fn render_frames(
             .map(|i| render_frame(scene, i, params).map_err(|e| (i, e)))
             .collect();
     }
-    let options = RasterOptions {
-        cull: Cull::None,
-        samples: params.samples,
-        ..RasterOptions::default()
-    };
-    let prepared = SceneRaster::new(scene, &options).map_err(|e| (0, e))?;
+    let prepared = SceneRaster::new(scene, &raster_options(params)).map_err(|e| (0, e))?;
     scene
         .cameras
         .iter()
         .enumerate()
         .map(|(i, c)| {
-            let out = View::new(c)
+            View::new(c)
                 .and_then(|view| prepared.render(&view))
-                .map_err(|e| (i, e))?;
-            Ok(Frame {
-                color: image(out.width, out.height, Channels::Rgb, out.color)
-                    .map_err(|e| (i, e))?,
-                depth: image(out.width, out.height, Channels::Gray, out.depth)
-                    .map_err(|e| (i, e))?,
-            })
+                .and_then(raster_frame)
+                .map_err(|e| (i, e))
         })
         .collect()
 }

@@ -847,8 +847,9 @@ mod tests {
             let tnorm: Vec<f32> = tpad.chunks_exact(dp).map(|r| dot(r, r)).collect();
             let panels = float_avx2::Panels::new(&t, dim, &tnorm);
             let (mut fast, mut portable) = (vec![f32::NAN; QR * nt], vec![f32::NAN; QR * nt]);
-            for t0 in (0..nt).step_by(TRAIN_BLOCK.min(16)) {
-                let t1 = (t0 + 16).min(nt);
+            // Blocks of 40 rows: two panel pairs and a single panel, then shorter tails.
+            for t0 in (0..nt).step_by(40) {
+                let t1 = (t0 + 40).min(nt);
                 assert!(float_avx2::approx_block(
                     &qpad, dp, &qnorm, &panels, &mut fast, nt, t0, t1
                 ));
