@@ -35,8 +35,9 @@ impl Plane {
         let xc = x.clamp(0.0, (w - 1) as f32);
         let yc = y.clamp(0.0, (h - 1) as f32);
         // `xc` and `yc` are non-negative (or NaN, which converts to 0 either way), so truncation
-        // is the floor; through `i64` it is one instruction, where `floor` is a libm call on
-        // baseline x86-64 and a float-to-`usize` conversion needs a branch for values ≥ 2⁶³.
+        // is the floor, without the libm call `floor` is on baseline x86-64 (as in
+        // `filter::flow`); through `i64` it is one conversion instruction, where a direct
+        // float-to-`usize` conversion adds a second conversion and a select for values ≥ 2⁶³.
         let x0 = (xc as i64 as usize).min(w - 1);
         let y0 = (yc as i64 as usize).min(h - 1);
         let x1 = (x0 + 1).min(w - 1);
