@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The Python package's tests: a virtual environment in target/pyenv with maturin, NumPy, Ray and
 # pytest from PyPI, the wheel built from this checkout and installed into it (as a user would),
-# then pytest on python/tests (which also drives the CLI in target/debug: build it first, or set
-# OCELLUS_BIN). Usage: bash python/test.sh [pytest args]
+# then pytest on python/tests (which also drives the CLI: target/debug/ocellus, from the test
+# build below, or $OCELLUS_BIN). Usage: bash python/test.sh [pytest args]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -12,11 +12,16 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 "$VENV/bin/python" -m pip install -q --disable-pip-version-check "maturin>=1.5,<2" "numpy>=1.21" "ray>=2.9" "pytest>=7"
 rm -rf target/wheels
-# The dev profile (optimised dependencies) shares the build with `cargo test`; release wheels
-# come from `maturin build --release`.
+# The dev profile (optimised dependencies); release wheels come from `maturin build --release`.
+# maturin builds the python package alone, so its dependencies' features (and build) differ
+# from `cargo test --workspace`'s.
 "$VENV/bin/maturin" build -q -m python/Cargo.toml --profile dev -o target/wheels -i "$VENV/bin/python"
 "$VENV/bin/python" -m pip install -q --disable-pip-version-check --force-reinstall --no-deps target/wheels/ocellus-*.whl
-cargo build -q --bin ocellus
+# The CLI the tests drive: `cargo test --workspace` leaves its build in target/debug/ocellus.
+# Right after that command (as in the README and CI) this is a no-op; a `cargo build --bin
+# ocellus` would compile the workspace again, because the tests' dev-dependencies change the
+# shared crates' features.
+cargo test -q --workspace --no-run
 # Run from python/tests so `import ocellus` is the installed wheel, not the source folder.
 cd python/tests
 exec "../../$VENV/bin/python" -m pytest -q -p no:cacheprovider "$@"
