@@ -587,8 +587,8 @@ type PatternCache = Mutex<Vec<(usize, Arc<Vec<(i32, i32)>>)>>;
 ///
 /// The paper enumerates about 205 000 candidates. Drawing 4096 instead of 1024 raised the
 /// correct-match ratio on 21 warped real image pairs from 0.859–0.882 to 0.876–0.894
-/// (500–2000 features; BENCHMARKS.md, "ORB test pattern: 4096 candidates"), at the cost of
-/// about 20 ms more learning (release build), once per process.
+/// (500–2000 features; BENCHMARKS.md, "ORB test pattern: 4096 candidates"). Learning, once per
+/// process, takes about 65 ms instead of 30 ms (release build).
 ///
 /// WTA_K 3 and 4 use Gaussian tuples of distinct points (no learning). Patterns are computed
 /// once per patch size and cached.
