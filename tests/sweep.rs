@@ -67,13 +67,24 @@ fn ransac_trials_trade_time_for_accuracy() {
         .collect();
     assert_eq!(settings[..3], [("2", "1"), ("2", "3"), ("20", "1")]);
     let num = |r: &Vec<String>, k: usize| r[k].parse::<f64>().unwrap();
+    // A setting without a result (its `problem` column says why) has no error.
+    let has_result = |r: &Vec<String>| r[8].is_empty();
     let error = |trials: &str, threshold: &str| {
         let r = rows
             .iter()
             .find(|r| r[0] == trials && r[1] == threshold)
             .unwrap();
-        num(r, 4)
+        if has_result(r) {
+            num(r, 4)
+        } else {
+            f64::INFINITY
+        }
     };
+    // Only the smallest budget may fail outright (both of its samples degenerate).
+    for r in rows.iter().filter(|r| !has_result(r)) {
+        assert_eq!(r[0], "2", "{csv}");
+        assert!(r[8].contains("degenerate"), "{csv}");
+    }
     // Two trials at 25 % inliers almost never draw four inliers; 2000 always do.
     assert!(error("2", "3") > 100.0, "{csv}");
     assert!(error("2000", "3") < 1.0, "{csv}");
@@ -90,7 +101,7 @@ fn ransac_trials_trade_time_for_accuracy() {
     }
     assert!(front.last().unwrap().1 < 1.0, "{front:?}");
     // Every row off the front is dominated by a front row.
-    for r in rows.iter().filter(|r| r[6] == "0") {
+    for r in rows.iter().filter(|r| r[6] == "0" && has_result(r)) {
         let (t, e) = (num(r, 2), num(r, 4));
         assert!(
             front.iter().any(|&(ft, fe)| ft <= t && fe <= e),

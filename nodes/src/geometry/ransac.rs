@@ -88,6 +88,16 @@ pub enum RobustError {
         /// Data given.
         got: usize,
     },
+    /// Fewer distinct data than a minimal sample (exact repeats count once).
+    #[error("{got} distinct data among {total}, but at least {needed} are needed")]
+    TooFewDistinct {
+        /// Minimal sample size.
+        needed: usize,
+        /// Distinct data given.
+        got: usize,
+        /// Data given, repeats included.
+        total: usize,
+    },
     /// A datum holds NaN or an infinity.
     #[error("datum {index} is not finite")]
     NonFinite {

@@ -29,8 +29,8 @@ use super::pose_util::{Intrinsics, input_points2, nearest_rotation, pose_from_rt
 use super::ransac::{RobustOptions, estimate};
 use super::robust::Estimator;
 use super::two_view::{
-    RobustMethod, TwoViewEstimate, check_robust, find_homography, gric, h33_normalized, mask_value,
-    matrix_value, msac, options, refine_rounds,
+    RobustMethod, TwoViewEstimate, check_robust, distinct_checked, find_homography, gric,
+    h33_normalized, mask_value, matrix_value, msac, options, refine_rounds,
 };
 
 /// A calibrated view of the correspondences: pinhole intrinsics and the points in ideal
@@ -202,8 +202,9 @@ pub fn refine_essential(e: &Matrix3<f64>, data: &[NormalizedPair], focal: f64) -
 
 /// Robust essential matrix from pixel correspondences `(x1, x2)` of two pinhole cameras `k1`,
 /// `k2` (undistorted pixels). `options.threshold` is in pixels (Sampson distance scaled by the
-/// geometric mean of the focal lengths). With `refine`, `E` is refined on its inliers twice (the
-/// inliers recomputed in between), each refinement kept only if the MSAC score does not grow.
+/// geometric mean of the focal lengths). With `refine`, `E` is refined on its inliers in the
+/// rounds of [`refine_rounds`], each kept only if it lowers the MSAC score. Exact repeats of a
+/// correspondence count once in sampling and fitting ([`super::two_view::distinct_correspondences`]).
 /// The pose is the cheirality winner among the inliers, voting with parallax ≥
 /// `min_parallax_deg`.
 pub fn find_essential(
@@ -220,29 +221,39 @@ pub fn find_essential(
     {
         return Err(format!("correspondence {i} is not finite"));
     }
-    let normalized: Vec<NormalizedPair> = data
+    let normalize = |c: &Correspondence| -> NormalizedPair {
+        (k1.normalize(c[0]).into(), k2.normalize(c[1]).into())
+    };
+    let distinct: Vec<NormalizedPair> = distinct_checked(data, EssentialEstimator::MIN_SAMPLES)
+        .map_err(|e| e.to_string())?
         .iter()
-        .map(|c| (k1.normalize(c[0]).into(), k2.normalize(c[1]).into()))
+        .map(normalize)
         .collect();
+    let normalized: Vec<NormalizedPair> = data.iter().map(normalize).collect();
     let focal = (k1.focal() * k2.focal()).sqrt();
     let estimator = EssentialEstimator { focal_px: focal };
-    let report = estimate(&estimator, &normalized, options).map_err(|e| e.to_string())?;
+    let report = estimate(&estimator, &distinct, options).map_err(|e| e.to_string())?;
     let t2 = options.threshold * options.threshold;
-    let (model, residuals, score, refined) = refine_rounds(
+    let (model, distinct_residuals, _, refined) = refine_rounds(
         &estimator,
-        &normalized,
+        &distinct,
         report.model,
         t2,
         refine,
         |m, inliers| refine_essential(m, inliers, focal),
     );
-    let inlier_mask: Vec<bool> = residuals.iter().map(|&r| r <= t2).collect();
-    let inliers = inlier_mask.iter().filter(|&&b| b).count();
-    if inliers < EssentialEstimator::MIN_SAMPLES {
+    let distinct_inliers = distinct_residuals.iter().filter(|&&r| r <= t2).count();
+    if distinct_inliers < EssentialEstimator::MIN_SAMPLES {
         return Err(format!(
-            "the best essential matrix has {inliers} inliers, fewer than a minimal sample (5)"
+            "the best essential matrix has {distinct_inliers} distinct inliers, fewer than a \
+             minimal sample (5)"
         ));
     }
+    let mut residuals = vec![0.0; normalized.len()];
+    estimator.residuals(&model, &normalized, &mut residuals);
+    let score = msac(&residuals, t2);
+    let inlier_mask: Vec<bool> = residuals.iter().map(|&r| r <= t2).collect();
+    let inliers = inlier_mask.iter().filter(|&&b| b).count();
     let (x1, x2): (Vec<[f64; 2]>, Vec<[f64; 2]>) = normalized
         .iter()
         .zip(&inlier_mask)
@@ -668,9 +679,10 @@ shared robust loop (`method`: RANSAC, MSAC, LO-RANSAC (default; local optimisati
 normalized eight-point fit projected onto the essential manifold) or PROSAC), residual = the
 Sampson distance times the geometric-mean focal length, so `threshold_px` is in pixels
 (OpenCV's `threshold` is the same quantity). With `refine`, `E = [t]×R` is polished by
-Levenberg–Marquardt over (R, t) (5 degrees of freedom) on the inliers' Sampson distances,
-twice with the inliers recomputed, each kept only if the MSAC score does not grow (OpenCV does
-not refine). The four (R, ±t) candidates are scored by the cheirality test (points triangulated
+Levenberg–Marquardt over (R, t) (5 degrees of freedom) on the inliers' Sampson distances, in
+up to four rounds, each refitting the inlier sets at 1, 1.25, 1.5 and 2 times the threshold and
+keeping the refit with the lowest MSAC score, if it lowers it (OpenCV does not refine). Exact
+repeats of a correspondence count once in sampling and fitting. The four (R, ±t) candidates are scored by the cheirality test (points triangulated
 by the midpoint method must lie in front of both cameras; only inliers with parallax ≥
 `min_parallax_deg` vote). `E` is reported as `[t]×R` of the chosen pose, unit norm.
 

@@ -3,8 +3,9 @@
 //!
 //! [`find_homography`] and [`find_fundamental`] run one of the robust loops of
 //! [`super::ransac`] over [`HomographyEstimator`] / [`FundamentalEstimator`], then (optionally)
-//! refine the model on its inliers by Levenberg–Marquardt, recompute the inliers and refine
-//! once more, keeping a refinement only if it does not worsen the truncated-quadratic score.
+//! refine the model on its inliers by Levenberg–Marquardt in rounds ([`refine_rounds`]) that
+//! lower the truncated-quadratic (MSAC) score. Exact repeats of a correspondence count once
+//! ([`distinct_correspondences`]).
 //! [`select_model`] decides between the two with Torr's GRIC.
 
 use std::sync::Arc;
@@ -103,6 +104,63 @@ pub fn correspondences(
     Ok(left.iter().zip(right).map(|(a, b)| [*a, *b]).collect())
 }
 
+/// The correspondences with exact repeats removed: the first occurrence of each is kept, in
+/// input order. Matchers repeat correspondences (SIFT gives one keypoint several orientations,
+/// and each may match the same point of the other image; the published `ransac_*` sets repeat
+/// 13–30 % of theirs). A repeat is no new observation: counted k times it would weigh k times in
+/// every least-squares fit and could fill a minimal sample twice. `-0.0` and `0.0` are the same.
+pub fn distinct_correspondences(data: &[Correspondence]) -> Vec<Correspondence> {
+    let key = |c: &Correspondence| -> [u64; 4] {
+        // `+ 0.0` turns -0.0 into 0.0.
+        [
+            (c[0][0] + 0.0).to_bits(),
+            (c[0][1] + 0.0).to_bits(),
+            (c[1][0] + 0.0).to_bits(),
+            (c[1][1] + 0.0).to_bits(),
+        ]
+    };
+    let mut order: Vec<usize> = (0..data.len()).collect();
+    order.sort_by_key(|&i| (key(&data[i]), i));
+    let mut keep = vec![false; data.len()];
+    for (k, &i) in order.iter().enumerate() {
+        keep[i] = k == 0 || key(&data[order[k - 1]]) != key(&data[i]);
+    }
+    data.iter()
+        .zip(&keep)
+        .filter(|(_, k)| **k)
+        .map(|(c, _)| *c)
+        .collect()
+}
+
+/// The distinct correspondences (see [`distinct_correspondences`]), checked first for
+/// non-finite entries (reported at their input index) and for a minimal sample's worth.
+pub(crate) fn distinct_checked(
+    data: &[Correspondence],
+    min_samples: usize,
+) -> Result<Vec<Correspondence>, RobustError> {
+    if data.len() < min_samples {
+        return Err(RobustError::TooFewData {
+            needed: min_samples,
+            got: data.len(),
+        });
+    }
+    if let Some(index) = data
+        .iter()
+        .position(|c| !c.iter().flatten().all(|v| v.is_finite()))
+    {
+        return Err(RobustError::NonFinite { index });
+    }
+    let distinct = distinct_correspondences(data);
+    if distinct.len() < min_samples {
+        return Err(RobustError::TooFewDistinct {
+            needed: min_samples,
+            got: distinct.len(),
+            total: data.len(),
+        });
+    }
+    Ok(distinct)
+}
+
 /// MSAC score: squared residuals capped at the squared threshold `t2`, summed.
 pub(crate) fn msac(residuals: &[f64], t2: f64) -> f64 {
     residuals
@@ -111,9 +169,22 @@ pub(crate) fn msac(residuals: &[f64], t2: f64) -> f64 {
         .sum()
 }
 
-/// Up to two refinement rounds of `model` on its inliers (squared residual ≤ `t2`), each kept
-/// only if the MSAC score does not increase; stops early when a round changes nothing. Returns
-/// the model, its squared residuals, its MSAC score and whether a refinement was kept.
+/// Inlier thresholds, as multiples of the robust threshold, whose inlier sets
+/// [`refine_rounds`] refits in every round.
+const REFIT_THRESHOLD_MULTIPLIERS: [f64; 4] = [1.0, 1.25, 1.5, 2.0];
+
+/// Most refinement rounds of [`refine_rounds`].
+const MAX_REFINE_ROUNDS: usize = 4;
+
+/// Refinement rounds of `model` that lower its MSAC score `Σ min(r², t²)`. Each round refits
+/// (with `refiner`) the inlier set of the current model at the thresholds `t`, `1.25 t`, `1.5 t`
+/// and `2 t` (each distinct set once) and keeps the refit with the lowest score if it is lower
+/// than the current one; rounds stop when none is, or after four. Refitting only the set at `t`
+/// can stall where a datum near the threshold is just outside it while the model that includes
+/// it scores lower (on the graf pair of the published `ransac_homography` set, one such point
+/// moved the mean error on the hand-checked points from 0.72 to 0.83 px); the wider sets let the
+/// rounds reach it. Returns the model, its squared residuals, its MSAC score and whether a
+/// refinement was kept.
 pub(crate) fn refine_rounds<E>(
     estimator: &E,
     data: &[E::Datum],
@@ -131,36 +202,50 @@ where
     estimator.residuals(&model, data, &mut residuals);
     let mut score = msac(&residuals, t2);
     let mut refined = false;
-    if refine {
-        for _ in 0..2 {
+    if !refine {
+        return (model, residuals, score, refined);
+    }
+    let mut r = vec![0.0; data.len()];
+    for _ in 0..MAX_REFINE_ROUNDS {
+        let mut best: Option<(E::Model, Vec<f64>, f64)> = None;
+        // The sets grow with the threshold, so a set of the same size is the same set.
+        let mut previous_len = usize::MAX;
+        for multiplier in REFIT_THRESHOLD_MULTIPLIERS {
+            let limit = t2 * multiplier * multiplier;
             let inliers: Vec<E::Datum> = data
                 .iter()
                 .zip(&residuals)
-                .filter(|(_, r)| **r <= t2)
+                .filter(|(_, r)| **r <= limit)
                 .map(|(c, _)| *c)
                 .collect();
+            if inliers.len() == previous_len {
+                continue;
+            }
+            previous_len = inliers.len();
             let candidate = refiner(&model, &inliers);
             if candidate == model {
-                break;
+                continue;
             }
-            let mut r = vec![0.0; data.len()];
             estimator.residuals(&candidate, data, &mut r);
             let s = msac(&r, t2);
-            if s <= score {
-                model = candidate;
-                residuals = r;
-                score = s;
-                refined = true;
-            } else {
-                break;
+            if s < best.as_ref().map_or(score, |b| b.2) {
+                best = Some((candidate, r.clone(), s));
             }
         }
+        let Some((candidate, candidate_residuals, s)) = best else {
+            break;
+        };
+        model = candidate;
+        residuals = candidate_residuals;
+        score = s;
+        refined = true;
     }
     (model, residuals, score, refined)
 }
 
-/// Robust fit, then LM refinement rounds on the inliers (kept only if the MSAC score does not
-/// increase).
+/// Robust fit on the distinct correspondences, then LM refinement rounds on their inliers (kept
+/// only if the MSAC score does not increase); the final residuals, mask and score cover every
+/// input correspondence, repeats included.
 fn robust_two_view<E>(
     estimator: &E,
     data: &[Correspondence],
@@ -171,17 +256,26 @@ fn robust_two_view<E>(
 where
     E: Estimator<Datum = Correspondence, Model = Matrix3<f64>>,
 {
-    let report = estimate(estimator, data, options)?;
+    let distinct = distinct_checked(data, E::MIN_SAMPLES)?;
+    let report = estimate(estimator, &distinct, options)?;
     let t2 = options.threshold * options.threshold;
-    let (model, residuals, score, refined) =
-        refine_rounds(estimator, data, report.model, t2, refine, |m, inliers| {
-            refiner(m, inliers).0
-        });
+    let (model, distinct_residuals, _, refined) = refine_rounds(
+        estimator,
+        &distinct,
+        report.model,
+        t2,
+        refine,
+        |m, inliers| refiner(m, inliers).0,
+    );
+    let mut residuals = vec![0.0; data.len()];
+    estimator.residuals(&model, data, &mut residuals);
+    let score = msac(&residuals, t2);
     let inlier_mask: Vec<bool> = residuals.iter().map(|&r| r <= t2).collect();
     let inliers = inlier_mask.iter().filter(|&&b| b).count();
-    if inliers < E::MIN_SAMPLES {
+    let distinct_inliers = distinct_residuals.iter().filter(|&&r| r <= t2).count();
+    if distinct_inliers < E::MIN_SAMPLES {
         return Err(RobustError::NoConsensus {
-            inliers,
+            inliers: distinct_inliers,
             needed: E::MIN_SAMPLES,
         });
     }
@@ -410,8 +504,10 @@ Lebeda et al. 2012: inner RANSAC with non-minimal DLT fits and iterative least s
 shrinking threshold) or PROSAC (Chum & Matas 2005; the input must be ordered best match first,
 as `geometry.matched_points` does). Trials stop adaptively at `log(1−p)/log(1−w⁴)`. With
 `refine`, the model is polished by Levenberg–Marquardt on the symmetric transfer error of its
-inliers (8 parameters), twice with inliers recomputed; a refinement is kept only if it does
-not worsen the MSAC score. `H` is scaled to `h₃₃ = 1` as OpenCV does (unit Frobenius norm
+inliers (8 parameters) in up to four rounds: each refits the inlier sets at 1, 1.25, 1.5 and 2
+times the threshold and keeps the refit with the lowest MSAC score, if it lowers it. Exact
+repeats of a correspondence (matchers produce them) count once in sampling and fitting; the mask,
+`inliers` and score cover every input correspondence. `H` is scaled to `h₃₃ = 1` as OpenCV does (unit Frobenius norm
 if `h₃₃` is numerically 0). Fewer than 4 correspondences, non-finite coordinates or no consensus are errors.
 
 Reference: Hartley & Zisserman, "Multiple View Geometry" §4; Fischler & Bolles 1981; Chum,
@@ -478,8 +574,10 @@ by the squared Sampson distance (OpenCV's RANSAC scores the epipolar distance). 
 RANSAC, MSAC, LO-RANSAC (default; non-minimal fits by the normalized 8-point algorithm with rank
 2 enforced) or PROSAC (ordered input). With `refine`, F is polished by Levenberg–Marquardt on
 the Sampson distances of its inliers with the minimal 7-parameter rank-2 parameterization
-`U·diag(1, σ, 0)·Vᵀ` (Bartoli & Sturm 2004), twice with inliers recomputed, kept only if the MSAC
-score does not worsen. `F` has unit Frobenius norm, largest entry positive. A planar scene or
+`U·diag(1, σ, 0)·Vᵀ` (Bartoli & Sturm 2004), in up to four rounds, each refitting the inlier
+sets at 1, 1.25, 1.5 and 2 times the threshold and keeping the refit with the lowest MSAC score,
+if it lowers it. Exact repeats of a correspondence count once in sampling and fitting; the mask
+and score cover every input correspondence. `F` has unit Frobenius norm, largest entry positive. A planar scene or
 pure rotation leaves F undetermined: check with `geometry.select_model`. Fewer than 7
 correspondences, non-finite coordinates or no consensus are errors.
 
@@ -902,6 +1000,127 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn distinct_correspondences_keep_first_occurrences_in_order() {
+        let a = [[1.0, 2.0], [3.0, 4.0]];
+        let b = [[0.0, 2.0], [3.0, 4.0]];
+        let b_negative_zero = [[-0.0, 2.0], [3.0, 4.0]];
+        let c = [[1.0, 2.0], [3.0, 4.5]];
+        let data = [c, a, b, a, b_negative_zero, c, a];
+        assert_eq!(distinct_correspondences(&data), vec![c, a, b]);
+        assert!(distinct_correspondences(&[]).is_empty());
+        // Three distinct correspondences, six in all: too few for a homography.
+        assert_eq!(
+            distinct_checked(&data[..6], 4),
+            Err(RobustError::TooFewDistinct {
+                needed: 4,
+                got: 3,
+                total: 6
+            })
+        );
+        let mut bad = data.to_vec();
+        bad[5][1][0] = f64::NAN;
+        assert_eq!(
+            distinct_checked(&bad, 4),
+            Err(RobustError::NonFinite { index: 5 })
+        );
+    }
+
+    #[test]
+    fn repeated_correspondences_change_neither_model_nor_their_mask() {
+        let mut hdata = make_data(&h_true(), 120, 1.0, 31);
+        noisy(&mut hdata, 0.7, 0.4, 32);
+        let scene = Scene::new();
+        let mut fdata = scene.data(120, 6.0, 33);
+        noisy(&mut fdata, 0.4, 0.4, 34);
+        // Every third correspondence repeated once, right after its first occurrence, and the
+        // first ten (inliers and outliers alike) five more times at the end.
+        let repeat = |data: &[Correspondence]| -> (Vec<Correspondence>, Vec<usize>) {
+            let mut out = Vec::new();
+            let mut source = Vec::new();
+            for (i, c) in data.iter().enumerate() {
+                out.push(*c);
+                source.push(i);
+                if i % 3 == 0 {
+                    out.push(*c);
+                    source.push(i);
+                }
+            }
+            for _ in 0..5 {
+                for (i, c) in data.iter().enumerate().take(10) {
+                    out.push(*c);
+                    source.push(i);
+                }
+            }
+            (out, source)
+        };
+        let o = RobustOptions {
+            threshold: 2.0,
+            ..RobustOptions::default()
+        };
+        for homography in [true, false] {
+            let data = if homography { &hdata } else { &fdata };
+            let fit = |d: &[Correspondence]| {
+                if homography {
+                    find_homography(d, &o, true).unwrap()
+                } else {
+                    find_fundamental(d, &o, true).unwrap()
+                }
+            };
+            let once = fit(data);
+            let (repeated, source) = repeat(data);
+            let many = fit(&repeated);
+            assert_eq!(once.matrix, many.matrix);
+            assert_eq!(once.trials, many.trials);
+            for (k, &i) in source.iter().enumerate() {
+                assert_eq!(many.inlier_mask[k], once.inlier_mask[i]);
+            }
+            let expected = source.iter().filter(|&&i| once.inlier_mask[i]).count();
+            assert_eq!(many.inliers, expected);
+            assert!(many.inliers > once.inliers);
+        }
+    }
+
+    /// A 1-D location model: the mean of the data.
+    struct Location;
+
+    impl Estimator for Location {
+        type Datum = f64;
+        type Model = f64;
+        const MIN_SAMPLES: usize = 1;
+        fn fit(&self, sample: &[f64]) -> Vec<f64> {
+            vec![sample.iter().sum::<f64>() / sample.len() as f64]
+        }
+        fn residuals(&self, model: &f64, data: &[f64], residuals: &mut [f64]) {
+            for (r, d) in residuals.iter_mut().zip(data) {
+                *r = (d - model) * (d - model);
+            }
+        }
+    }
+
+    #[test]
+    fn refinement_rounds_reach_a_datum_just_outside_the_threshold() {
+        // t = 1. From 0 the inliers are −0.2 and 0.2, whose mean is 0 again: refitting only the
+        // inliers at t stalls at MSAC score 0.04 + 0.04 + 1 = 1.08. With 1.05 included the mean
+        // is 0.35 and the score 0.55² + 0.15² + 0.7² = 0.815, lower.
+        let data = [-0.2, 0.2, 1.05];
+        let mean = |m: &f64, d: &[f64]| Location.fit(d)[0] + 0.0 * m;
+        let (model, residuals, score, refined) =
+            refine_rounds(&Location, &data, 0.0, 1.0, true, mean);
+        assert!(refined);
+        assert!((model - 0.35).abs() < 1e-12, "{model}");
+        assert!((score - 0.815).abs() < 1e-12, "{score}");
+        assert!(residuals.iter().all(|&r| r <= 1.0));
+        // Without refinement nothing moves.
+        let (model, _, score, refined) = refine_rounds(&Location, &data, 0.0, 1.0, false, mean);
+        assert_eq!((model, refined), (0.0, false));
+        assert!((score - 1.08).abs() < 1e-12);
+        // A datum beyond twice the threshold is never reached: 0 stays.
+        let far = [-0.2, 0.2, 2.1];
+        let (model, _, _, refined) = refine_rounds(&Location, &far, 0.0, 1.0, true, mean);
+        assert_eq!((model, refined), (0.0, false));
     }
 
     #[test]
