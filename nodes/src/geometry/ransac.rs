@@ -505,7 +505,7 @@ pub(crate) mod tests {
     }
 
     /// A 1-D location model: the datum itself, MIN_SAMPLES 1, the mean as non-minimal fit.
-    struct Location;
+    pub(crate) struct Location;
 
     impl Estimator for Location {
         type Datum = f64;

@@ -680,8 +680,9 @@ normalized eight-point fit projected onto the essential manifold) or PROSAC), re
 Sampson distance times the geometric-mean focal length, so `threshold_px` is in pixels
 (OpenCV's `threshold` is the same quantity). With `refine`, `E = [t]×R` is polished by
 Levenberg–Marquardt over (R, t) (5 degrees of freedom) on the inliers' Sampson distances, in
-up to four rounds, each refitting the inlier sets at 1, 1.25, 1.5 and 2 times the threshold and
-keeping the refit with the lowest MSAC score, if it lowers it (OpenCV does not refine). Exact
+up to four rounds, each refitting the inlier set at the threshold and, while that does not lower
+the MSAC score, the wider sets at 1.25, 1.5 and 2 times it, keeping the first refit that does
+(OpenCV does not refine). Exact
 repeats of a correspondence count once in sampling and fitting. The four (R, ±t) candidates are scored by the cheirality test (points triangulated
 by the midpoint method must lie in front of both cameras; only inliers with parallax ≥
 `min_parallax_deg` vote). `E` is reported as `[t]×R` of the chosen pose, unit norm.
