@@ -107,7 +107,7 @@ pub fn correspondences(
 /// The correspondences with exact repeats removed: the first occurrence of each is kept, in
 /// input order. Matchers repeat correspondences (SIFT gives one keypoint several orientations,
 /// and each may match the same point of the other image; the published `ransac_*` sets repeat
-/// 13–30 % of theirs). A repeat is no new observation: counted k times it would weigh k times in
+/// 7–31 % of theirs). A repeat is no new observation: counted k times it would weigh k times in
 /// every least-squares fit and could fill a minimal sample twice. `-0.0` and `0.0` are the same.
 pub fn distinct_correspondences(data: &[Correspondence]) -> Vec<Correspondence> {
     let key = |c: &Correspondence| -> [u64; 4] {
