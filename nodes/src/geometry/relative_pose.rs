@@ -204,9 +204,9 @@ pub fn refine_essential(e: &Matrix3<f64>, data: &[NormalizedPair], focal: f64) -
 /// `k2` (undistorted pixels). `options.threshold` is in pixels (Sampson distance scaled by the
 /// geometric mean of the focal lengths). With `refine`, `E` is refined on its inliers in the
 /// rounds of [`refine_rounds`], each kept only if it lowers the MSAC score. Exact repeats of a
-/// correspondence count once in sampling and fitting ([`super::two_view::distinct_correspondences`]).
-/// The pose is the cheirality winner among the inliers, voting with parallax ≥
-/// `min_parallax_deg`.
+/// correspondence count once in sampling and fitting
+/// ([`super::two_view::distinct_correspondences`]). The pose is the cheirality winner among the
+/// inliers, voting with parallax ≥ `min_parallax_deg`.
 pub fn find_essential(
     data: &[Correspondence],
     k1: &Intrinsics,
@@ -682,9 +682,9 @@ Sampson distance times the geometric-mean focal length, so `threshold_px` is in 
 Levenberg–Marquardt over (R, t) (5 degrees of freedom) on the inliers' Sampson distances, in
 up to four rounds, each refitting the inlier set at the threshold and, while that does not lower
 the MSAC score, the wider sets at 1.25, 1.5 and 2 times it, keeping the first refit that does
-(OpenCV does not refine). Exact
-repeats of a correspondence count once in sampling and fitting. The four (R, ±t) candidates are scored by the cheirality test (points triangulated
-by the midpoint method must lie in front of both cameras; only inliers with parallax ≥
+(OpenCV does not refine). Exact repeats of a correspondence count once in sampling and
+fitting. The four (R, ±t) candidates are scored by the cheirality test (points triangulated by
+the midpoint method must lie in front of both cameras; only inliers with parallax ≥
 `min_parallax_deg` vote). `E` is reported as `[t]×R` of the chosen pose, unit norm.
 
 Outputs: `E` (3×3), `pose` (camera2_from_camera1, unit t), `inlier_mask` (N×1, 1 = inlier of

@@ -5,8 +5,7 @@
 //! [`super::ransac`] over [`HomographyEstimator`] / [`FundamentalEstimator`], then (optionally)
 //! refine the model on its inliers by Levenberg–Marquardt in rounds ([`refine_rounds`]) that
 //! lower the truncated-quadratic (MSAC) score. Exact repeats of a correspondence count once
-//! ([`distinct_correspondences`]).
-//! [`select_model`] decides between the two with Torr's GRIC.
+//! ([`distinct_correspondences`]). [`select_model`] decides between the two with Torr's GRIC.
 
 use std::sync::Arc;
 
@@ -507,10 +506,10 @@ as `geometry.matched_points` does). Trials stop adaptively at `log(1−p)/log(1�
 `refine`, the model is polished by Levenberg–Marquardt on the symmetric transfer error of its
 inliers (8 parameters) in up to four rounds: each refits the inlier set at the threshold and,
 while that does not lower the MSAC score, the wider sets at 1.25, 1.5 and 2 times it, keeping
-the first refit that does. Exact
-repeats of a correspondence (matchers produce them) count once in sampling and fitting; the mask,
-`inliers` and score cover every input correspondence. `H` is scaled to `h₃₃ = 1` as OpenCV does (unit Frobenius norm
-if `h₃₃` is numerically 0). Fewer than 4 correspondences, non-finite coordinates or no consensus are errors.
+the first refit that does. Exact repeats of a correspondence (matchers produce them) count once
+in sampling and fitting; the mask, `inliers` and score cover every input correspondence. `H` is
+scaled to `h₃₃ = 1` as OpenCV does (unit Frobenius norm if `h₃₃` is numerically 0). Fewer than
+4 correspondences, non-finite coordinates or no consensus are errors.
 
 Reference: Hartley & Zisserman, "Multiple View Geometry" §4; Fischler & Bolles 1981; Chum,
 Matas & Kittler 2003; OpenCV `cv::findHomography`.
@@ -578,10 +577,11 @@ RANSAC, MSAC, LO-RANSAC (default; non-minimal fits by the normalized 8-point alg
 the Sampson distances of its inliers with the minimal 7-parameter rank-2 parameterization
 `U·diag(1, σ, 0)·Vᵀ` (Bartoli & Sturm 2004), in up to four rounds, each refitting the inlier
 set at the threshold and, while that does not lower the MSAC score, the wider sets at 1.25, 1.5
-and 2 times it, keeping the first refit that does. Exact repeats of a correspondence count once in sampling and fitting; the mask
-and score cover every input correspondence. `F` has unit Frobenius norm, largest entry positive. A planar scene or
-pure rotation leaves F undetermined: check with `geometry.select_model`. Fewer than 7
-correspondences, non-finite coordinates or no consensus are errors.
+and 2 times it, keeping the first refit that does. Exact repeats of a correspondence count once
+in sampling and fitting; the mask and score cover every input correspondence. `F` has unit
+Frobenius norm, largest entry positive. A planar scene or pure rotation leaves F undetermined:
+check with `geometry.select_model`. Fewer than 7 correspondences, non-finite coordinates or no
+consensus are errors.
 
 Reference: Hartley & Zisserman, "Multiple View Geometry" §11; Hartley, "In defense of the
 eight-point algorithm", PAMI 1997; OpenCV `cv::findFundamentalMat`.
