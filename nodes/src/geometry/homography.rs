@@ -468,6 +468,27 @@ pub(crate) mod tests {
         (data, truth)
     }
 
+    /// `n` correspondences of `h` of which the first `inliers` are true (noise σ = 0.3 px on
+    /// the second point) and the rest have a uniformly random second point.
+    fn with_outliers_exactly(
+        h: &Matrix3<f64>,
+        n: usize,
+        inliers: usize,
+        seed: u64,
+    ) -> (Vec<Correspondence>, Vec<bool>) {
+        let mut rng = SplitMix64::new(seed);
+        let mut data = make_data(h, n, 1.0, seed + 1);
+        for (i, c) in data.iter_mut().enumerate() {
+            if i < inliers {
+                c[1][0] += 0.3 * rng.normal();
+                c[1][1] += 0.3 * rng.normal();
+            } else {
+                c[1] = [640.0 * rng.uniform(), 480.0 * rng.uniform()];
+            }
+        }
+        (data, (0..n).map(|i| i < inliers).collect())
+    }
+
     #[test]
     fn ransac_finds_the_model_among_90_percent_outliers() {
         let h = h_true();
@@ -497,6 +518,56 @@ pub(crate) mod tests {
                 })
                 .fold(0.0f64, f64::max);
             assert!(corner_error < 1.5, "{method:?}: {corner_error}");
+        }
+    }
+
+    /// 95 % outliers (50 true of 1000), ordered as a matcher would rank them: each datum's
+    /// quality is a unit normal, shifted by +1.5 for the true ones, and the data are sorted by
+    /// decreasing quality. PROSAC finds the model within 5000 trials; uniform sampling with
+    /// the same budget draws an all-inlier 4-sample with probability 1 − (1 − 0.05⁴)⁵⁰⁰⁰ ≈ 3 %,
+    /// and does not.
+    #[test]
+    fn prosac_finds_h_among_95_percent_outliers_ranked_by_quality() {
+        let h = h_true();
+        let (data, truth) = with_outliers_exactly(&h, 1000, 50, 23);
+        let (data, truth) =
+            crate::geometry::ransac::tests::ranked_by_quality(&data, &truth, 1.5, 24);
+        let corner_error = |m: &Matrix3<f64>| {
+            [[0.0, 0.0], [640.0, 0.0], [0.0, 480.0], [640.0, 480.0]]
+                .iter()
+                .map(|p| {
+                    let a = transfer(&h, p).unwrap();
+                    transfer(m, p).map_or(f64::INFINITY, |b| (a[0] - b[0]).hypot(a[1] - b[1]))
+                })
+                .fold(0.0f64, f64::max)
+        };
+        let options = |method| RobustOptions {
+            method,
+            threshold: 2.0,
+            max_trials: 5000,
+            seed: 3,
+            ..RobustOptions::default()
+        };
+        let report = estimate(&HomographyEstimator, &data, &options(Method::Prosac)).unwrap();
+        let found = crate::geometry::ransac::tests::true_positives(&report.inlier_mask, &truth);
+        assert!(found >= 48, "PROSAC: {found}/50");
+        assert!(
+            report.num_inliers <= 55,
+            "PROSAC: {} inliers",
+            report.num_inliers
+        );
+        assert!(
+            corner_error(&report.model) < 1.0,
+            "PROSAC: {}",
+            corner_error(&report.model)
+        );
+        match estimate(&HomographyEstimator, &data, &options(Method::LoRansac)) {
+            Err(_) => {}
+            Ok(uniform) => {
+                let found =
+                    crate::geometry::ransac::tests::true_positives(&uniform.inlier_mask, &truth);
+                assert!(found < 25, "uniform sampling found {found}/50");
+            }
         }
     }
 

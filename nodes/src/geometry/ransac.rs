@@ -504,6 +504,25 @@ pub(crate) mod tests {
         mask.iter().zip(truth).filter(|(m, t)| **m && **t).count()
     }
 
+    /// The data ordered as a matcher would rank them for PROSAC: each datum's quality is a
+    /// unit normal (drawn from `seed`), shifted by `shift` for the true ones (`truth`); sorted
+    /// by decreasing quality. Returns the data and their truth in that order.
+    pub(crate) fn ranked_by_quality<D: Copy>(
+        data: &[D],
+        truth: &[bool],
+        shift: f64,
+        seed: u64,
+    ) -> (Vec<D>, Vec<bool>) {
+        let mut rng = SplitMix64::new(seed);
+        let mut ranked: Vec<(f64, D, bool)> = data
+            .iter()
+            .zip(truth)
+            .map(|(d, &t)| (rng.normal() + if t { shift } else { 0.0 }, *d, t))
+            .collect();
+        ranked.sort_by(|a, b| b.0.total_cmp(&a.0));
+        ranked.into_iter().map(|(_, d, t)| (d, t)).unzip()
+    }
+
     /// A 1-D location model: the datum itself, MIN_SAMPLES 1, the mean as non-minimal fit.
     pub(crate) struct Location;
 
