@@ -436,6 +436,9 @@ where
             .map(|(d, _)| d.clone())
             .collect()
     };
+    let selected = |residuals: &[f64], limit: f64| -> Vec<usize> {
+        (0..data.len()).filter(|&i| residuals[i] <= limit).collect()
+    };
     let mut best: Option<(E::Model, f64, usize)> = None;
     let mut best_cost = cost;
     estimator.residuals(model, data, residuals);
@@ -458,6 +461,7 @@ where
             *best = Some((candidate, c, k));
         }
     };
+    let inlier_indices = selected(residuals, t2);
     for repetition in 0..options.lo_inner_iterations.max(1) {
         let seeds = if repetition == 0 {
             estimator.fit_nonminimal(&inliers)
@@ -467,8 +471,14 @@ where
             subset.extend(indices.iter().map(|&i| inliers[i].clone()));
             estimator.fit_nonminimal(&subset)
         };
+        let single_seed = seeds.len() == 1;
         for seed_model in seeds {
             let mut current = seed_model;
+            // The data `current` is the (first) non-minimal fit of, when known: fitting the
+            // same set again gives the same model, so that refit and its scoring are skipped
+            // (the result is unchanged, bit for bit).
+            let mut fitted_from: Option<Vec<usize>> =
+                (repetition == 0 && single_seed).then(|| inlier_indices.clone());
             consider(current.clone(), residuals, &mut best, &mut best_cost);
             // Iterative least squares with a threshold shrinking to t.
             let steps = options.lo_ls_iterations;
@@ -480,14 +490,19 @@ where
                 } else {
                     1.0
                 };
-                let points = collect(residuals, t2 * factor * factor);
-                if points.len() <= s {
+                let chosen = selected(residuals, t2 * factor * factor);
+                if chosen.len() <= s {
                     break;
                 }
+                if fitted_from.as_ref() == Some(&chosen) {
+                    continue;
+                }
+                let points: Vec<E::Datum> = chosen.iter().map(|&i| data[i].clone()).collect();
                 let Some(next) = estimator.fit_nonminimal(&points).into_iter().next() else {
                     break;
                 };
                 current = next;
+                fitted_from = Some(chosen);
                 consider(current.clone(), residuals, &mut best, &mut best_cost);
             }
         }
