@@ -474,9 +474,9 @@ where
         let single_seed = seeds.len() == 1;
         for seed_model in seeds {
             let mut current = seed_model;
-            // The data `current` is the (first) non-minimal fit of, when known: fitting the
-            // same set again gives the same model, so that refit and its scoring are skipped
-            // (the result is unchanged, bit for bit).
+            // The set of data `current` was fitted from (its first non-minimal model), when
+            // known. Fitting that same set again would give the same model, so such a refit
+            // and its scoring are skipped; the result is unchanged, bit for bit.
             let mut fitted_from: Option<Vec<usize>> =
                 (repetition == 0 && single_seed).then(|| inlier_indices.clone());
             consider(current.clone(), residuals, &mut best, &mut best_cost);
