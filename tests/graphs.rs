@@ -247,6 +247,15 @@ fn every_example_graph_is_snapshot_tested_and_valid() {
             SNAPSHOTTED.contains(&name.as_str()),
             "{name} has no snapshot test in tests/graphs.rs"
         );
+        // Its test function has run at least once: listing a graph above without one fails here.
+        let stem = name.trim_end_matches(".ron");
+        assert!(
+            root()
+                .join("tests/snapshots")
+                .join(format!("graphs__{stem}.snap"))
+                .is_file(),
+            "{name}: no tests/snapshots/graphs__{stem}.snap; add its #[test] to tests/graphs.rs"
+        );
         let out = ocellus(&["check", path.to_str().unwrap()]);
         assert!(out.status.success(), "{name}: {}", stderr(&out));
     }
