@@ -13,6 +13,7 @@ pub mod pedestrians;
 use std::sync::Arc;
 
 use ocellus_engine::op::OpError;
+use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::value::{Matrix, Value};
 use rayon::prelude::*;
 
@@ -139,7 +140,7 @@ where
         .z
         .par_chunks(CHUNK * p)
         .enumerate()
-        .map(|(c, rows)| {
+        .map_dyn(&|(c, rows)| {
             let mut g = vec![0.0; p];
             let mut loss = 0.0;
             for (k, row) in rows.chunks_exact(p).enumerate() {

@@ -19,6 +19,7 @@
 
 use std::sync::Arc;
 
+use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::value::{
     Camera, Channels, Descriptors, Image, Keypoint, Match, Matrix, Metrics, Pose, Value,
 };
@@ -182,7 +183,7 @@ pub fn select_pairs(
             // Similarity score of every ordered pair, then each image's best `neighbors`.
             let scores: Vec<Vec<usize>> = (0..n)
                 .into_par_iter()
-                .map(|i| {
+                .map_dyn(&|i| {
                     (0..n)
                         .map(|j| {
                             if i == j {
@@ -383,7 +384,7 @@ pub fn match_pairs(
     };
     pairs
         .par_iter()
-        .map(|&(i, j)| {
+        .map_dyn(&|&(i, j)| {
             let matches = if keypoints[i].is_empty() || keypoints[j].is_empty() {
                 Vec::new()
             } else {
