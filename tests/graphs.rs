@@ -1,13 +1,19 @@
-//! Every graph in `graphs/` is snapshot-tested (its outputs computed with 2 threads), and the
-//! files it emits are byte-identical with `--threads 1` and `--threads 8`, two separate
-//! processes. Each graph runs three times in all, in its own test, so the two test threads share
-//! the work.
+//! Every graph in `graphs/` is snapshot-tested, and the files it emits do not depend on the
+//! thread count. A graph that runs once is computed in this process with 8 threads (its
+//! snapshot, and its outputs written by the CLI's `emit_value`) and by the CLI in a fresh process
+//! with `--threads 1`; every emitted file must be byte-identical. Animated and streamed graphs,
+//! whose CLI writes frame by frame, are snapshot-tested from a run in this process with 2 threads
+//! and run by the CLI with `--threads 1` and `--threads 8`. Each graph has its own test, so the
+//! two test threads share the work.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test code: a failed unwrap is a failed test
 
 mod common;
 
+use std::path::Path;
+
 use common::{example_graphs, files_below, ocellus, root, stderr, temp_dir};
+use ocellus_engine::Value;
 
 /// Graphs with a snapshot test below; a new graph must be added here.
 const SNAPSHOTTED: &[&str] = &[
@@ -45,52 +51,92 @@ const SNAPSHOTTED: &[&str] = &[
     "two_view.ron",
 ];
 
-fn summary(graph: &str, threads: usize) -> String {
+/// Graphs with an `animation` section: the CLI writes their outputs frame by frame.
+const ANIMATED: &[&str] = &["animate.ron", "tour.ron"];
+
+fn outputs(graph: &str, threads: usize) -> Vec<(String, Value)> {
     let registry = ocellus_nodes::builtin_registry().unwrap();
     // Animated graphs give each output as a list over their frames; the others run once.
-    let outputs = ocellus_engine::testing::run_animated_graph(
+    ocellus_engine::testing::run_animated_graph(
         &registry,
         root().join("graphs").join(graph),
         threads,
         &[],
     )
-    .unwrap_or_else(|e| panic!("{graph}: {e}"));
-    ocellus_engine::summary::summarize_outputs(&outputs)
+    .unwrap_or_else(|e| panic!("{graph}: {e}"))
 }
 
 fn check_graph(graph: &str) {
-    insta::assert_snapshot!(graph.trim_end_matches(".ron"), summary(graph, 2));
-    check_emitted_files(graph, &[]);
+    let stem = graph.trim_end_matches(".ron");
+    if ANIMATED.contains(&graph) {
+        let summary = ocellus_engine::summary::summarize_outputs(&outputs(graph, 2));
+        insta::assert_snapshot!(stem, summary);
+        check_emitted_files(graph, &[]);
+        return;
+    }
+    let outputs = outputs(graph, 8);
+    insta::assert_snapshot!(stem, ocellus_engine::summary::summarize_outputs(&outputs));
+    let dir = temp_dir("threads");
+    let in_process = dir.join("8");
+    for (name, value) in &outputs {
+        ocellus_engine::emit::emit_value(&in_process, name, value)
+            .unwrap_or_else(|e| panic!("{graph}: output `{name}`: {e}"));
+    }
+    let cli = dir.join("1");
+    run_cli(graph, "1", &cli, &[]);
+    assert_same_files(graph, &in_process, &cli);
+    std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// Runs `graph` through the CLI with `--threads 1` and with `--threads 8`, in fresh processes
-/// (no cache: real recomputes), and requires every emitted file to be byte-identical.
-fn check_emitted_files(graph: &str, sets: &[&str]) {
+/// `ocellus run GRAPH --threads THREADS --emit OUT_DIR` with `--set` overrides, in a fresh
+/// process (no cache: a real recompute).
+fn run_cli(graph: &str, threads: &str, out_dir: &Path, sets: &[&str]) {
     let path = root().join("graphs").join(graph);
-    let dir = temp_dir("threads");
-    let mut emitted = Vec::new();
-    for threads in ["1", "8"] {
-        let out_dir = dir.join(threads);
-        let mut args = vec![
-            "run",
-            path.to_str().unwrap(),
-            "--threads",
-            threads,
-            "--emit",
-            out_dir.to_str().unwrap(),
-        ];
-        for set in sets {
-            args.extend(["--set", set]);
-        }
-        let out = ocellus(&args);
-        assert!(out.status.success(), "{graph}: {}", stderr(&out));
-        emitted.push(files_below(&out_dir));
+    let mut args = vec![
+        "run",
+        path.to_str().unwrap(),
+        "--threads",
+        threads,
+        "--emit",
+        out_dir.to_str().unwrap(),
+    ];
+    for set in sets {
+        args.extend(["--set", set]);
     }
-    assert!(!emitted[0].is_empty(), "{graph} emitted nothing");
-    assert!(
-        emitted[0] == emitted[1],
-        "{graph}: the files emitted with 8 threads differ from those with 1"
+    let out = ocellus(&args);
+    assert!(out.status.success(), "{graph}: {}", stderr(&out));
+}
+
+/// Every file below `many` (written from a run with several threads) equals the one at the same
+/// path below `one` (one thread), and there is at least one.
+fn assert_same_files(graph: &str, many: &Path, one: &Path) {
+    let (many, one) = (files_below(many), files_below(one));
+    assert!(!one.is_empty(), "{graph} emitted nothing");
+    let names = |files: &[(std::path::PathBuf, Vec<u8>)]| -> Vec<String> {
+        files.iter().map(|(p, _)| p.display().to_string()).collect()
+    };
+    assert_eq!(
+        names(&many),
+        names(&one),
+        "{graph}: different files emitted"
     );
+    for ((path, a), (_, b)) in many.iter().zip(&one) {
+        assert!(
+            a == b,
+            "{graph}: {} differs between 1 thread and several",
+            path.display()
+        );
+    }
+}
+
+/// Runs `graph` through the CLI with `--threads 1` and with `--threads 8`, in fresh processes,
+/// and requires every emitted file to be byte-identical.
+fn check_emitted_files(graph: &str, sets: &[&str]) {
+    let dir = temp_dir("threads");
+    for threads in ["1", "8"] {
+        run_cli(graph, threads, &dir.join(threads), sets);
+    }
+    assert_same_files(graph, &dir.join("8"), &dir.join("1"));
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
