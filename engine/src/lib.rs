@@ -23,7 +23,6 @@ pub mod image_io;
 pub mod limits;
 pub mod mesh_write;
 pub mod op;
-pub mod par;
 pub mod params;
 pub mod plugin;
 pub mod reference;

@@ -9,7 +9,6 @@
 //! thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Matrix, Metrics, PixelData, Value};
@@ -99,7 +98,7 @@ pub fn confusion(prediction: &[bool], truth: &[bool]) -> ConfusionCounts {
     prediction
         .par_chunks(CHUNK)
         .zip(truth.par_chunks(CHUNK))
-        .map_dyn(&|(p, t)| {
+        .map(|(p, t)| {
             let mut c = ConfusionCounts::default();
             for (&p, &t) in p.iter().zip(t) {
                 match (p, t) {
@@ -274,7 +273,7 @@ pub fn roc_curve(scores: &[f64], truth: &[bool], steps: usize) -> Result<RocCurv
     let hist = scores
         .par_chunks(CHUNK)
         .zip(truth.par_chunks(CHUNK))
-        .map_dyn(&|(s, t)| {
+        .map(|(s, t)| {
             let mut h = vec![0u64; 2 * steps];
             for (&s, &t) in s.iter().zip(t) {
                 h[2 * first_index(s) + usize::from(t)] += 1;

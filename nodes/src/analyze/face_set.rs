@@ -11,7 +11,6 @@
 use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Matrix, Value};
@@ -211,7 +210,7 @@ pub fn face_set(
         .collect();
     drawn
         .into_par_iter()
-        .map_dyn(&|(shape, noise_seed)| {
+        .map(|(shape, noise_seed)| {
             let mut noise = SplitMix64::new(noise_seed);
             let pixels = draw_face(&shape, width, height, noise_sigma, &mut noise);
             (shape, pixels)

@@ -11,7 +11,6 @@
 use std::f64::consts::PI;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Value};
 use ocellus_engine::{param_enum, params};
@@ -117,35 +116,31 @@ pub fn filter_projections(sinogram: &[f64], bins: usize, window: RampWindow) -> 
     // imaginary). Fixed pairs (rows 2k, 2k + 1), so the result does not depend on the threads.
     out.par_chunks_mut(2 * bins)
         .zip(sinogram.par_chunks(2 * bins))
-        .for_each_init_dyn(&|| (vec![zero; len], vec![zero; scratch_len]), &|(
-            buffer,
-            scratch,
-        ),
-                                                                             (
-            filtered,
-            pair,
-        )| {
-            buffer.fill(zero);
-            let (a, b) = pair.split_at(bins.min(pair.len()));
-            for (z, &p) in buffer.iter_mut().zip(a) {
-                z.re = p;
-            }
-            for (z, &p) in buffer.iter_mut().zip(b) {
-                z.im = p;
-            }
-            forward.process_with_scratch(buffer, scratch);
-            for (z, &r) in buffer.iter_mut().zip(&response) {
-                *z *= r;
-            }
-            inverse.process_with_scratch(buffer, scratch);
-            let (fa, fb) = filtered.split_at_mut(bins.min(filtered.len()));
-            for (f, z) in fa.iter_mut().zip(buffer.iter()) {
-                *f = z.re / len as f64;
-            }
-            for (f, z) in fb.iter_mut().zip(buffer.iter()) {
-                *f = z.im / len as f64;
-            }
-        });
+        .for_each_init(
+            || (vec![zero; len], vec![zero; scratch_len]),
+            |(buffer, scratch), (filtered, pair)| {
+                buffer.fill(zero);
+                let (a, b) = pair.split_at(bins.min(pair.len()));
+                for (z, &p) in buffer.iter_mut().zip(a) {
+                    z.re = p;
+                }
+                for (z, &p) in buffer.iter_mut().zip(b) {
+                    z.im = p;
+                }
+                forward.process_with_scratch(buffer, scratch);
+                for (z, &r) in buffer.iter_mut().zip(&response) {
+                    *z *= r;
+                }
+                inverse.process_with_scratch(buffer, scratch);
+                let (fa, fb) = filtered.split_at_mut(bins.min(filtered.len()));
+                for (f, z) in fa.iter_mut().zip(buffer.iter()) {
+                    *f = z.re / len as f64;
+                }
+                for (f, z) in fb.iter_mut().zip(buffer.iter()) {
+                    *f = z.im / len as f64;
+                }
+            },
+        );
     out
 }
 
@@ -162,7 +157,7 @@ pub fn back_project(filtered: &[f64], geometry: &Geometry, size: usize) -> Vec<f
     let mut out = vec![0.0; size * size];
     out.par_chunks_mut(size.max(1))
         .enumerate()
-        .for_each_dyn(&|(row, line)| {
+        .for_each(|(row, line)| {
             let y = centre - row as f64;
             for (col, value) in line.iter_mut().enumerate() {
                 let x = col as f64 - centre;

@@ -12,7 +12,6 @@
 //! same `⌊v·a + b⌋` formula as OpenCV (`a = bins / (hi − lo)`, `b = −lo·a`).
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Matrix, PixelData, Value, ValueError};
@@ -150,7 +149,7 @@ impl Operator for Histogram {
 pub fn histogram_u8(samples: &[u8]) -> [u64; 256] {
     let partial: Vec<[u32; 256]> = samples
         .par_chunks(CHUNK)
-        .map_dyn(&|chunk| {
+        .map(|chunk| {
             let mut h = [[0u32; 256]; 4];
             let mut quads = chunk.chunks_exact(4);
             for q in &mut quads {
@@ -182,7 +181,7 @@ pub fn histogram_u8(samples: &[u8]) -> [u64; 256] {
 pub fn histogram_u16(samples: &[u16]) -> Vec<u64> {
     let partial: Vec<Vec<u32>> = samples
         .par_chunks(CHUNK)
-        .map_dyn(&|chunk| {
+        .map(|chunk| {
             let mut h = vec![0u32; 65536];
             for &v in chunk {
                 h[v as usize] += 1;
@@ -276,7 +275,7 @@ fn count_with<T: Copy + Sync>(
     let chunk = (CHUNK / c) * c;
     let partial: Vec<Vec<u32>> = src
         .par_chunks(chunk)
-        .map_dyn(&|part| {
+        .map(|part| {
             let mut h = vec![0u32; bins * c];
             for px in part.chunks_exact(c) {
                 for (ch, &v) in px.iter().enumerate() {

@@ -17,7 +17,6 @@ use std::sync::Arc;
 
 use nalgebra::{DMatrix, SymmetricEigen};
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Depth, Image, Matrix, Metrics, PixelData, Value};
@@ -384,7 +383,7 @@ impl PcaModel {
     /// Coefficients of every vector on the first `k` components: cᵢ = Uᵀ(xᵢ − m).
     pub fn project(&self, data: &[Vec<f64>], k: usize) -> Vec<Vec<f64>> {
         data.par_iter()
-            .map_dyn(&|x| {
+            .map(|x| {
                 (0..k)
                     .map(|j| {
                         self.component(j)
@@ -402,7 +401,7 @@ impl PcaModel {
     pub fn reconstruct(&self, coefficients: &[Vec<f64>], k: usize) -> Vec<Vec<f64>> {
         coefficients
             .par_iter()
-            .map_dyn(&|c| {
+            .map(|c| {
                 let mut x = self.mean.clone();
                 for (j, &cj) in c.iter().take(k).enumerate() {
                     for (xi, u) in x.iter_mut().zip(self.component(j)) {
@@ -473,7 +472,7 @@ pub fn pca_with(data: &[Vec<f64>], use_gram: bool) -> Result<PcaModel, String> {
     let dim = if use_gram { n } else { d };
     let rows: Vec<Vec<f64>> = (0..dim)
         .into_par_iter()
-        .map_dyn(&|i| {
+        .map(|i| {
             (0..dim)
                 .map(|j| {
                     if use_gram {

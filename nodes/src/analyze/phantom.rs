@@ -5,7 +5,6 @@
 //! transform), the ground truth for `analyze.radon` and `analyze.fbp`.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Value};
@@ -92,7 +91,7 @@ pub fn phantom(ellipses: &[Ellipse], size: usize) -> Vec<f32> {
     let mut out = vec![0f32; size * size];
     out.par_chunks_mut(size.max(1))
         .enumerate()
-        .for_each_dyn(&|(row, line)| {
+        .for_each(|(row, line)| {
             let y = -to_unit(row);
             for (col, v) in line.iter_mut().enumerate() {
                 *v = phantom_value(ellipses, to_unit(col), y) as f32;

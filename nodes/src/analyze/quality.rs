@@ -12,7 +12,6 @@
 //! large-offset float data.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Metrics, PixelData, Value};
@@ -252,7 +251,7 @@ pub fn error_stats(image: &Image, reference: &Image) -> ErrorStats {
 fn chunk_errors<T: Copy + Sync>(a: &[T], b: &[T], to_f64: fn(T) -> f64) -> Vec<(f64, f64, f64)> {
     a.par_chunks(CHUNK_SAMPLES)
         .zip(b.par_chunks(CHUNK_SAMPLES))
-        .map_dyn(&|(ca, cb)| {
+        .map(|(ca, cb)| {
             let (mut sq, mut abs, mut max_abs) = (0.0f64, 0.0f64, 0.0f64);
             for (&x, &y) in ca.iter().zip(cb) {
                 let d = to_f64(x) - to_f64(y);
@@ -316,7 +315,7 @@ pub fn ssim(
             [x, y, &xx, &yy, &xy].map(|plane| gaussian_f64(plane, width, height, &kernel));
         map.par_chunks_mut(width)
             .enumerate()
-            .for_each_dyn(&|(row, out)| {
+            .for_each(|(row, out)| {
                 let base = row * width;
                 for (i, o) in out.iter_mut().enumerate() {
                     let k = base + i;
@@ -336,7 +335,7 @@ pub fn ssim(
     let (y0, y1) = interior(height, radius);
     let rows: Vec<f64> = (y0..y1)
         .into_par_iter()
-        .map_dyn(&|row| map[row * width + x0..row * width + x1].iter().sum::<f64>())
+        .map(|row| map[row * width + x0..row * width + x1].iter().sum::<f64>())
         .collect();
     let count = ((x1 - x0) * (y1 - y0)) as f64;
     let mean = rows.iter().sum::<f64>() / count * inv_channels;
@@ -365,7 +364,7 @@ fn gaussian_f64(plane: &[f64], width: usize, height: usize, kernel: &[f64]) -> V
     horizontal
         .par_chunks_mut(width * BAND_ROWS)
         .enumerate()
-        .for_each_dyn(&|(band, out)| {
+        .for_each(|(band, out)| {
             let mut padded = vec![0.0f64; columns.padded_len()];
             for (r, out_row) in out.chunks_mut(width).enumerate() {
                 let row = band * BAND_ROWS + r;
@@ -383,7 +382,7 @@ fn gaussian_f64(plane: &[f64], width: usize, height: usize, kernel: &[f64]) -> V
     result
         .par_chunks_mut(width * BAND_ROWS)
         .enumerate()
-        .for_each_dyn(&|(band, out)| {
+        .for_each(|(band, out)| {
             for (r, out_row) in out.chunks_mut(width).enumerate() {
                 let row = band * BAND_ROWS + r;
                 for (tap, &k) in kernel.iter().enumerate() {

@@ -7,7 +7,6 @@
 //! sequentially in a fixed order, so the result is bit-identical for any thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Value};
@@ -96,7 +95,7 @@ pub fn radon(
     let mut out = vec![0.0; geometry.angles * geometry.bins];
     out.par_chunks_mut(geometry.bins.max(1))
         .enumerate()
-        .for_each_dyn(&|(i, row_out)| {
+        .for_each(|(i, row_out)| {
             let (st, ct) = geometry.theta_rad(i).sin_cos();
             for (j, value) in row_out.iter_mut().enumerate() {
                 let s = geometry.bin_offset_px(j);

@@ -20,7 +20,6 @@
 use std::ops::Range;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Metrics, PixelData, Value};
 use rayon::prelude::*;
@@ -315,7 +314,7 @@ fn integer_stats<T: IntSample>(samples: &[T], region: &Region) -> Vec<ChannelSta
     let c = region.channels;
     let chunks: Vec<Vec<IntMoments<T>>> = (0..region.chunks())
         .into_par_iter()
-        .map_dyn(&|k| integer_chunk(samples, region, k))
+        .map(|k| integer_chunk(samples, region, k))
         .collect();
     let mut total = vec![IntMoments::<T>::empty(); c];
     for chunk in &chunks {
@@ -464,7 +463,7 @@ fn float_stats(samples: &[f32], region: &Region) -> Vec<ChannelStats> {
     let c = region.channels;
     let chunks: Vec<Vec<FloatMoments>> = (0..region.chunks())
         .into_par_iter()
-        .map_dyn(&|k| float_chunk(samples, region, k))
+        .map(|k| float_chunk(samples, region, k))
         .collect();
     let mut total = vec![FloatMoments::empty(); c];
     for chunk in &chunks {

@@ -11,7 +11,6 @@ use std::sync::Arc;
 
 use nalgebra::DMatrix;
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Matrix, Metrics, Value};
@@ -125,7 +124,7 @@ impl Operator for SvdCompress {
             .collect();
         let results: Vec<LowRank> = planes
             .par_iter()
-            .map_dyn(&|p| low_rank(p, w, h, self.rank))
+            .map(|p| low_rank(p, w, h, self.rank))
             .collect();
         let k = self.rank.min(w).min(h);
         let mut rebuilt = vec![0.0; samples.len()];

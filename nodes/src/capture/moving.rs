@@ -13,7 +13,6 @@ use std::sync::Arc;
 use ocellus_engine::op::{
     FrameSource, Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext,
 };
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Matrix, Value};
 use ocellus_engine::{param_enum, params};
@@ -386,7 +385,7 @@ fn render_at(
         .zip(mask.par_chunks_mut((ROWS_PER_TASK * w).max(1)))
         .zip(labels.par_chunks_mut((ROWS_PER_TASK * w).max(1)))
         .enumerate()
-        .for_each_dyn(&|(task, ((frame_rows, mask_rows), label_rows))| {
+        .for_each(|(task, ((frame_rows, mask_rows), label_rows))| {
             let mut level = vec![0.0f64; w];
             let rows = frame_rows
                 .chunks_exact_mut((w * c).max(1))

@@ -5,7 +5,6 @@
 //! rows are rendered in parallel and the output is bit-identical for any thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Depth, Image, PixelData, PixelFormat, Value, ValueError};
 use ocellus_engine::{param_enum, params};
@@ -333,7 +332,7 @@ fn paint<T: Level>(painter: &Painter, samples: usize, channels: Channels) -> Vec
     }
     data.par_chunks_mut(ROWS_PER_TASK * row_len)
         .enumerate()
-        .for_each_dyn(&|(task, rows)| {
+        .for_each(|(task, rows)| {
             for (r, row) in rows.chunks_exact_mut(row_len).enumerate() {
                 painter.paint_row(task * ROWS_PER_TASK + r, channels, row);
             }

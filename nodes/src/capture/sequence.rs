@@ -7,7 +7,6 @@ use ocellus_engine::image_io::{DecodeLimits, ImageFormat, read_image};
 use ocellus_engine::op::{
     FrameSource, Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext,
 };
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::Value;
@@ -125,7 +124,7 @@ impl Operator for Sequence {
         let limits = DecodeLimits::default();
         let decoded: Vec<_> = files
             .par_iter()
-            .map_dyn(&|path| read_image(path, &limits))
+            .map(|path| read_image(path, &limits))
             .collect();
         let mut frames = Vec::with_capacity(decoded.len());
         for (k, result) in decoded.into_iter().enumerate() {

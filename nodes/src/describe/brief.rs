@@ -13,7 +13,6 @@
 //! The sampling helpers here ([`SplitMix64`], [`gaussian_pair`]) are shared with `describe.orb`.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Descriptors, Image, Keypoint, Value};
 use ocellus_engine::{param_enum, params};
@@ -338,7 +337,7 @@ pub fn brief_describe(
         let tests = brief_pattern(params.pattern, bytes * 8, patch);
         data.par_chunks_mut(bytes * CHUNK)
             .zip(kept.par_chunks(CHUNK))
-            .for_each_dyn(&|(rows, kps)| {
+            .for_each(|(rows, kps)| {
                 for (row, &(_, x, y)) in rows.chunks_mut(bytes).zip(kps) {
                     describe_at(&smooth, w, x, y, &tests, row);
                 }

@@ -20,7 +20,6 @@
 //! thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Descriptors, Image, PixelData, Value};
@@ -175,7 +174,7 @@ fn gradients(image: &Image, p: &HogParams) -> Gradients {
         .par_chunks_mut(w.max(1))
         .zip(out.parts.par_chunks_mut(w.max(1)))
         .enumerate()
-        .for_each_dyn(&|(y, (brow, prow))| {
+        .for_each(|(y, (brow, prow))| {
             let yu = map_index(y as isize - 1, h, BorderMode::Reflect101).unwrap_or(y);
             let yd = map_index(y as isize + 1, h, BorderMode::Reflect101).unwrap_or(y);
             for x in 0..w {
@@ -284,7 +283,7 @@ pub fn hog(image: &Image, params: &HogParams) -> Result<(usize, usize, Descripto
     let clip = params.clip as f32;
     data.par_chunks_mut(nby * dim)
         .enumerate()
-        .for_each_dyn(&|(bx, column)| {
+        .for_each(|(bx, column)| {
             for (by, hist) in column.chunks_exact_mut(dim).enumerate() {
                 let origin = by * stride * w + bx * stride;
                 let span = (side - 1) * w + side;

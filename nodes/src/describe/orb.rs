@@ -30,7 +30,6 @@ use std::borrow::Cow;
 use std::sync::{Arc, Mutex, OnceLock};
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Descriptors, Image, Keypoint, Value};
 use ocellus_engine::{param_enum, params};
@@ -505,7 +504,7 @@ pub fn orb_with_pattern(
         .par_iter()
         .zip(budgets.par_iter())
         .enumerate()
-        .map_dyn(&|(l, (level, &budget))| {
+        .map(|(l, (level, &budget))| {
             let data = level
                 .image
                 .as_u8()

@@ -18,8 +18,6 @@
 
 use rayon::prelude::*;
 
-use ocellus_engine::par::ParallelIteratorDyn as _;
-
 use crate::filter::gaussian::gaussian_kernel;
 
 /// Rows per parallel band of the plane-wise loops.
@@ -82,7 +80,7 @@ pub fn blur(plane: &Plane, sigma: f64) -> Plane {
     let mut data = vec![0f32; w * h];
     data.par_chunks_mut(w * BAND_ROWS)
         .enumerate()
-        .for_each_dyn(&|(band, out)| {
+        .for_each(|(band, out)| {
             let y0 = band * BAND_ROWS;
             blur_rows(&plane.data, w, h, &half, y0, out);
         });
@@ -189,7 +187,7 @@ pub fn upsample2(plane: &Plane) -> Plane {
     let mut data = vec![0f32; ow * oh];
     data.par_chunks_mut(ow * BAND_ROWS)
         .enumerate()
-        .for_each_dyn(&|(band, chunk)| {
+        .for_each(|(band, chunk)| {
             let y0 = band * BAND_ROWS;
             let mut a = vec![0f32; ow];
             let mut b = vec![0f32; ow];
@@ -231,7 +229,7 @@ pub fn difference(a: &Plane, b: &Plane) -> Plane {
     data.par_chunks_mut(w * BAND_ROWS)
         .zip(a.data.par_chunks(w * BAND_ROWS))
         .zip(b.data.par_chunks(w * BAND_ROWS))
-        .for_each_dyn(&|((d, x), y)| {
+        .for_each(|((d, x), y)| {
             for ((d, &x), &y) in d.iter_mut().zip(x).zip(y) {
                 *d = x - y;
             }

@@ -27,7 +27,6 @@
 //! vectorizable.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Descriptors, Image, Keypoint, PixelData, Value};
@@ -316,10 +315,7 @@ pub fn sift_detect_and_compute(
     if s.max_features > 0 && cands.len() > s.max_features {
         cands.truncate(s.max_features);
     }
-    let oriented: Vec<Vec<Oriented>> = cands
-        .par_iter()
-        .map_dyn(&|c| orientations(&space, c))
-        .collect();
+    let oriented: Vec<Vec<Oriented>> = cands.par_iter().map(|c| orientations(&space, c)).collect();
     let mut oriented: Vec<Oriented> = oriented.into_iter().flatten().collect();
     dedupe(&mut oriented);
     if s.max_features > 0 {
@@ -328,7 +324,7 @@ pub fn sift_detect_and_compute(
     let first_octave: i32 = if s.upsample { -1 } else { 0 };
     let descriptors: Vec<[f32; SIFT_DIM]> = oriented
         .par_iter()
-        .map_dyn(&|k| {
+        .map(|k| {
             let img = &space.gaussians[k.cand.octave][k.cand.layer];
             descriptor(img, k.cand.x, k.cand.y, k.cand.scale, k.ori, s.unit_norm)
         })
@@ -440,7 +436,7 @@ fn find_extrema(space: &ScaleSpace, s: &Settings) -> Vec<Candidate> {
     }
     let found: Vec<Vec<Candidate>> = tasks
         .par_iter()
-        .map_dyn(&|&(o, layer, y0, y1)| {
+        .map(|&(o, layer, y0, y1)| {
             let gauss = &space.gaussians[o];
             let w = gauss[0].width;
             // DoG layers layer − 1 ..= layer + 1, rows y0 − 1 ..= y1.

@@ -12,7 +12,6 @@
 //! bit-identical for any number of threads.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Depth, Image, Value};
 use rayon::prelude::*;
@@ -313,7 +312,7 @@ pub fn sobel_i16(
     dx.par_chunks_mut(band)
         .zip(dy.par_chunks_mut(band))
         .enumerate()
-        .for_each_dyn(&|(b, (dx_band, dy_band))| {
+        .for_each(|(b, (dx_band, dy_band))| {
             let mut scratch = RowScratch::new(width, &kernels);
             for (i, (dx_row, dy_row)) in dx_band
                 .chunks_exact_mut(width)
@@ -594,7 +593,7 @@ pub fn canny(
     let strong_per_band: Vec<Vec<usize>> = interior
         .par_chunks_mut(stride * BAND_ROWS)
         .enumerate()
-        .map_dyn(&|(b, map_band)| {
+        .map(|(b, map_band)| {
             // Rows y0 - 1 and y0 first, then one new row per step: a ring of three.
             let y0 = b * BAND_ROWS;
             let mut scratch = RowScratch::new(width, &kernels);

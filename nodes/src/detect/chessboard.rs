@@ -19,7 +19,6 @@
 use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Metrics, Value};
@@ -130,7 +129,7 @@ pub fn saddle_points(
     let mut resp = vec![0f32; width * height];
     resp.par_chunks_mut(width * BAND_ROWS)
         .enumerate()
-        .for_each_dyn(&|(band, out)| {
+        .for_each(|(band, out)| {
             for (i, row) in out.chunks_exact_mut(width).enumerate() {
                 let y = band * BAND_ROWS + i;
                 if y == 0 || y + 1 >= height {

@@ -15,7 +15,6 @@
 //! derivatives it needs above and below), so the response is bit-identical for any thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Keypoint, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -234,7 +233,7 @@ pub fn corner_response(
     let padded = columns.padded_len();
     out.par_chunks_mut(width * BAND_ROWS)
         .enumerate()
-        .for_each_dyn(&|(b, band)| {
+        .for_each(|(b, band)| {
             let y0 = b * BAND_ROWS;
             let rows = band.len() / width;
             let mut deriv = DerivRows::new(width, ksize);
@@ -346,7 +345,7 @@ pub fn select_corners(
     let bands = inner_rows.div_ceil(SELECT_BAND_ROWS);
     let mut candidates: Vec<(f32, usize)> = (0..bands)
         .into_par_iter()
-        .map_dyn(&|b| {
+        .map(|b| {
             let y0 = 1 + b * SELECT_BAND_ROWS;
             let y1 = (y0 + SELECT_BAND_ROWS).min(height - 1);
             let mut found = Vec::new();
@@ -525,7 +524,7 @@ pub fn refine_corners(
         .map(|i| (-((i * i) as f64) * coeff).exp())
         .collect();
     let eps2 = epsilon * epsilon;
-    points.par_iter_mut().for_each_dyn(&|pt| {
+    points.par_iter_mut().for_each(|pt| {
         let start = *pt;
         let mut c = start;
         let mut patch = vec![0.0f64; (side + 2) * (side + 2)];
@@ -1144,7 +1143,7 @@ mod tests {
         let padded = columns.padded_len();
         out.par_chunks_mut(width * BAND_ROWS)
             .enumerate()
-            .for_each_dyn(&|(b, band)| {
+            .for_each(|(b, band)| {
                 let y0 = b * BAND_ROWS;
                 let rows = band.len() / width;
                 let mut deriv = RefDerivRows::new(width, ksize);
@@ -1265,7 +1264,7 @@ mod tests {
         let keep = |v: f32| if v > threshold { v } else { 0.0 };
         let mut candidates: Vec<(f32, usize)> = (1..height - 1)
             .into_par_iter()
-            .map_dyn(&|y| {
+            .map(|y| {
                 let mut found = Vec::new();
                 for x in 1..width - 1 {
                     let v = keep(response[y * width + x]);

@@ -12,7 +12,6 @@
 //! thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Keypoint, Value};
@@ -389,7 +388,7 @@ pub fn fast9_region(
     let bands = (last - first).div_ceil(BAND_ROWS);
     (0..bands)
         .into_par_iter()
-        .map_dyn(&|b| {
+        .map(|b| {
             let y0 = first + b * BAND_ROWS;
             let y1 = (y0 + BAND_ROWS).min(last);
             let mut found = Vec::new();

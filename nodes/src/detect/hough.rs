@@ -13,7 +13,6 @@
 //! depend on the thread count). The probabilistic transform is inherently sequential.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Matrix, PixelData, Value};
@@ -158,7 +157,7 @@ pub fn hough_lines(
     acc[stride..(g.numangle + 1) * stride]
         .par_chunks_mut(stride)
         .enumerate()
-        .for_each_dyn(&|(n, row)| {
+        .for_each(|(n, row)| {
             for &(x, y) in points {
                 row[g.bin(n, x, y) + 1] += 1;
             }

@@ -26,7 +26,6 @@
 //! is an independent sequential computation. Results are bit-identical for any thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Matrix, Value};
@@ -319,7 +318,7 @@ fn vote(rays: &[Ray], cols: usize, rows: usize, rmin: i64, rmax: i64) -> Vec<u32
     }
     acc.par_chunks_mut(stride * BAND_ROWS)
         .enumerate()
-        .for_each_dyn(&|(b, band)| {
+        .for_each(|(b, band)| {
             let b0 = (b * BAND_ROWS) as i64;
             let b1 = b0 + (band.len() / stride) as i64 - 1;
             for seg in &segments {
@@ -350,7 +349,7 @@ fn peaks(acc: &[u32], cols: usize, rows: usize, threshold: u32) -> Vec<(u32, usi
     let stride = cols + 2;
     let bands: Vec<Vec<(u32, usize)>> = (0..rows.div_ceil(BAND_ROWS))
         .into_par_iter()
-        .map_dyn(&|b| {
+        .map(|b| {
             let mut found = Vec::new();
             for j in b * BAND_ROWS..((b + 1) * BAND_ROWS).min(rows) {
                 let base = (j + 1) * stride;
@@ -738,7 +737,7 @@ pub fn hough_circles(
     for batch in centres.chunks(CENTRE_BATCH) {
         let found: Vec<Option<(f64, f64, f64)>> = batch
             .par_iter()
-            .map_dyn(&|&(_, x, y)| circle_at(&edges, x, y, &search))
+            .map(|&(_, x, y)| circle_at(&edges, x, y, &search))
             .collect();
         for (&(votes, _, _), c) in batch.iter().zip(found) {
             let Some((x, y, radius)) = c else { continue };

@@ -8,7 +8,6 @@
 //! same arithmetic whatever the thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Metrics, Value};
 use ocellus_engine::{param_enum, params};
@@ -84,7 +83,7 @@ pub fn match_template(
     let mut out = vec![0.0f32; ow * oh];
     out.par_chunks_mut(ow * BAND_ROWS)
         .enumerate()
-        .for_each_dyn(&|(b, band)| {
+        .for_each(|(b, band)| {
             let mut corr = vec![0.0f64; ow];
             for (r, out_row) in band.chunks_exact_mut(ow).enumerate() {
                 let y = b * BAND_ROWS + r;

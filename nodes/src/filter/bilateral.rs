@@ -18,7 +18,6 @@
 //!   any thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
@@ -435,7 +434,7 @@ fn bands<T: Sample, W: ColorWeights<T>, const C: usize>(
     let stride = g.columns.padded_len() * C;
     dst.par_chunks_mut(BAND_ROWS * n)
         .enumerate()
-        .for_each_dyn(&|(b, out)| {
+        .for_each(|(b, out)| {
             let rows = out.len() / n;
             let padded = pad_band(src, g, b * BAND_ROWS, rows, constant);
             let mut sums = vec![0.0f32; n];

@@ -24,7 +24,6 @@
 use std::ops::{Add, Sub};
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
@@ -320,7 +319,7 @@ where
     let band_rows = BAND_ROWS.max(4 * taps_y);
     dst.par_chunks_mut(band_rows * n)
         .enumerate()
-        .for_each_dyn(&|(band, out)| {
+        .for_each(|(band, out)| {
             let y0 = band * band_rows;
             let out_rows = out.len() / n;
             let wide_constant = widen(constant);
@@ -402,7 +401,7 @@ fn box_u8_fast(src: &[u8], geometry: &Geometry, constant: u8, inverse: f32) -> V
     };
     dst.par_chunks_mut(band_rows * n)
         .enumerate()
-        .for_each_dyn(&|(band, out)| {
+        .for_each(|(band, out)| {
             let y0 = band * band_rows;
             let mut padded = vec![0u16; columns.padded_len() * c];
             for (y, line) in out.chunks_exact_mut(n).enumerate() {

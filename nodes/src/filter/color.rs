@@ -15,7 +15,6 @@
 //! RGB samples are 0..255 for u8 and 0..1 for f32.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -190,15 +189,14 @@ where
     T: Copy + Send + Sync,
 {
     let mut dst = src.to_vec();
-    dst.par_chunks_mut(PIXELS_PER_TASK * C)
-        .for_each_dyn(&|chunk| {
-            for p in chunk.chunks_exact_mut(C) {
-                let [a, b, c] = f([p[0], p[1], p[2]]);
-                p[0] = a;
-                p[1] = b;
-                p[2] = c;
-            }
-        });
+    dst.par_chunks_mut(PIXELS_PER_TASK * C).for_each(|chunk| {
+        for p in chunk.chunks_exact_mut(C) {
+            let [a, b, c] = f([p[0], p[1], p[2]]);
+            p[0] = a;
+            p[1] = b;
+            p[2] = c;
+        }
+    });
     dst
 }
 
@@ -336,35 +334,34 @@ type Planes = [[i32; BLOCK]; 3];
 /// vectorizes), then clamped to 0..=255 and interleaved back; alpha is copied.
 fn planar_u8<const C: usize>(src: &[u8], kernel: impl Fn(&mut Planes) + Sync) -> Vec<u8> {
     let mut dst = src.to_vec();
-    dst.par_chunks_mut(PIXELS_PER_TASK * C)
-        .for_each_dyn(&|chunk| {
-            let mut planes = [[0i32; BLOCK]; 3];
-            for block in chunk.chunks_mut(BLOCK * C) {
-                let [a, b, c] = &mut planes;
-                for (((p, a), b), c) in block
-                    .chunks_exact(C)
-                    .zip(a.iter_mut())
-                    .zip(b.iter_mut())
-                    .zip(c.iter_mut())
-                {
-                    *a = i32::from(p[0]);
-                    *b = i32::from(p[1]);
-                    *c = i32::from(p[2]);
-                }
-                kernel(&mut planes);
-                let [a, b, c] = &planes;
-                for (((p, a), b), c) in block
-                    .chunks_exact_mut(C)
-                    .zip(a.iter())
-                    .zip(b.iter())
-                    .zip(c.iter())
-                {
-                    p[0] = (*a).clamp(0, 255) as u8;
-                    p[1] = (*b).clamp(0, 255) as u8;
-                    p[2] = (*c).clamp(0, 255) as u8;
-                }
+    dst.par_chunks_mut(PIXELS_PER_TASK * C).for_each(|chunk| {
+        let mut planes = [[0i32; BLOCK]; 3];
+        for block in chunk.chunks_mut(BLOCK * C) {
+            let [a, b, c] = &mut planes;
+            for (((p, a), b), c) in block
+                .chunks_exact(C)
+                .zip(a.iter_mut())
+                .zip(b.iter_mut())
+                .zip(c.iter_mut())
+            {
+                *a = i32::from(p[0]);
+                *b = i32::from(p[1]);
+                *c = i32::from(p[2]);
             }
-        });
+            kernel(&mut planes);
+            let [a, b, c] = &planes;
+            for (((p, a), b), c) in block
+                .chunks_exact_mut(C)
+                .zip(a.iter())
+                .zip(b.iter())
+                .zip(c.iter())
+            {
+                p[0] = (*a).clamp(0, 255) as u8;
+                p[1] = (*b).clamp(0, 255) as u8;
+                p[2] = (*c).clamp(0, 255) as u8;
+            }
+        }
+    });
     dst
 }
 

@@ -2,7 +2,6 @@
 //! flat-field correction): per-pixel operators on two or three images.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Depth, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -260,7 +259,7 @@ fn composite<T: OverSample>(f: &[T], b: &[T], bg: &Image, g: &Placement) -> Vec<
     let cols = g.x1 - g.x0;
     out.par_chunks_mut(ROWS_PER_TASK * row)
         .enumerate()
-        .for_each_dyn(&|(band, rows)| {
+        .for_each(|(band, rows)| {
             for (i, line) in rows.chunks_exact_mut(row).enumerate() {
                 let y = band * ROWS_PER_TASK + i;
                 if y < g.y0 || y >= g.y1 {
@@ -439,7 +438,7 @@ pub fn channel_means(image: &Image) -> Vec<f64> {
     let n = image.data().len();
     let partials: Vec<[f64; 4]> = (0..n.div_ceil(SAMPLES_PER_TASK))
         .into_par_iter()
-        .map_dyn(&|block| {
+        .map(|block| {
             let start = block * SAMPLES_PER_TASK;
             let mut buf = vec![0.0; SAMPLES_PER_TASK.min(n - start)];
             load(image.data(), start, &mut buf);
@@ -485,7 +484,7 @@ fn correct<O: Store>(image: &Image, dark: &Image, gain: &Image, factors: &[f64])
     let mut out = ocellus_engine::buffer::zeroed::<O>(image.data().len());
     out.par_chunks_mut(SAMPLES_PER_TASK)
         .enumerate()
-        .for_each_dyn(&|(block, dst)| {
+        .for_each(|(block, dst)| {
             let start = block * SAMPLES_PER_TASK;
             let mut i = vec![0.0; dst.len()];
             let mut b = vec![0.0; dst.len()];

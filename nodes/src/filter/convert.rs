@@ -2,7 +2,6 @@
 //! conversion and channel (de)interleaving.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Depth, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -205,7 +204,7 @@ where
     let mut dst = ocellus_engine::buffer::zeroed::<O>(src.len());
     dst.par_chunks_mut(SAMPLES_PER_TASK)
         .zip(src.par_chunks(SAMPLES_PER_TASK))
-        .for_each_dyn(&|(out, inp)| {
+        .for_each(|(out, inp)| {
             for (o, &v) in out.iter_mut().zip(inp) {
                 if let Some(&t) = table.get(v.into()) {
                     *o = t;
@@ -220,7 +219,7 @@ fn integer_to_float<T: Copy + Sync + Into<f64>>(src: &[T], scale: f64, offset: f
     let mut dst = vec![0.0; src.len()];
     dst.par_chunks_mut(SAMPLES_PER_TASK)
         .zip(src.par_chunks(SAMPLES_PER_TASK))
-        .for_each_dyn(&|(out, inp)| {
+        .for_each(|(out, inp)| {
             for (o, &v) in out.iter_mut().zip(inp) {
                 *o = (v.into() * scale + offset) as f32;
             }
@@ -246,7 +245,7 @@ fn from_float<O: Sample>(src: &[f32], scale: f64, offset: f64) -> Vec<O> {
     let mut dst = ocellus_engine::buffer::zeroed::<O>(src.len());
     dst.par_chunks_mut(SAMPLES_PER_TASK)
         .zip(src.par_chunks(SAMPLES_PER_TASK))
-        .for_each_dyn(&|(out, inp)| {
+        .for_each(|(out, inp)| {
             for (o, &v) in out.iter_mut().zip(inp) {
                 *o = O::from_f64(f64::from(v) * scale + offset);
             }

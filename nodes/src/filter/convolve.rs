@@ -12,7 +12,6 @@
 //! - Integer outputs are rounded to nearest (ties to even) and saturated.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -481,7 +480,7 @@ fn dense_bands<T: Sample>(
     let delta = options.delta as f32;
     dst.par_chunks_mut(BAND_ROWS * on)
         .enumerate()
-        .for_each_dyn(&|(band, out)| {
+        .for_each(|(band, out)| {
             let mut ring = vec![constant; kh * padded_len];
             // Which extended row each ring slot holds.
             let mut held = vec![usize::MAX; kh];

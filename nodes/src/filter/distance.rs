@@ -15,7 +15,6 @@
 //! uses the exact two-pass 3×3 chamfer with unit weights.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -136,9 +135,9 @@ pub fn distance_of_sites(zero: &[bool], w: usize, h: usize, metric: Metric) -> V
     }
     let column = column_distances(zero, w, h);
     let mut out = ocellus_engine::buffer::zeroed::<f32>(w * h);
-    out.par_chunks_mut(BAND_ROWS * w)
-        .enumerate()
-        .for_each_init_dyn(&RowScratch::default, &|scratch, (band, rows)| {
+    out.par_chunks_mut(BAND_ROWS * w).enumerate().for_each_init(
+        RowScratch::default,
+        |scratch, (band, rows)| {
             for (i, row) in rows.chunks_exact_mut(w).enumerate() {
                 let y = band * BAND_ROWS + i;
                 let v = &column[y * w..(y + 1) * w];
@@ -154,7 +153,8 @@ pub fn distance_of_sites(zero: &[bool], w: usize, h: usize, metric: Metric) -> V
                     }
                 }
             }
-        });
+        },
+    );
     out
 }
 

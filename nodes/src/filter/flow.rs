@@ -11,7 +11,6 @@
 //! Row bands run in parallel with fixed heights; outputs are bit-identical for any thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Value};
@@ -157,7 +156,7 @@ pub fn lic(vx: &Plane, vy: &Plane, texture: &Plane, settings: LicSettings) -> Pl
     const LANES: usize = 8;
     out.par_chunks_mut(BAND_ROWS * w)
         .enumerate()
-        .for_each_dyn(&|(band, rows)| {
+        .for_each(|(band, rows)| {
             let base = band * BAND_ROWS * w;
             for (chunk, outs) in rows.chunks_mut(LANES).enumerate() {
                 let lanes = outs.len();
@@ -407,7 +406,7 @@ pub fn edge_tangent_flow(gray: &Plane, radius: f32, iterations: usize) -> (Plane
         let mut next = vec![(0f32, 0f32); w * h];
         next.par_chunks_mut(BAND_ROWS * w)
             .enumerate()
-            .for_each_dyn(&|(band, rows)| {
+            .for_each(|(band, rows)| {
                 for (i, o) in rows.iter_mut().enumerate() {
                     let (x, y) = ((i % w) as isize, (band * BAND_ROWS + i / w) as isize);
                     let c = y as usize * w + x as usize;

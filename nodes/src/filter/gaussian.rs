@@ -36,7 +36,6 @@
 use std::marker::PhantomData;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
@@ -533,7 +532,7 @@ fn column_first_bands<T: Sample, W: Copy + Send + Sync>(
     let constant_row = vec![constant; n];
     dst.par_chunks_mut(band_rows * n)
         .enumerate()
-        .for_each_dyn(&|(band, out)| {
+        .for_each(|(band, out)| {
             let y0 = band * band_rows;
             let mut padded = vec![wide_constant; padded_len];
             let mut taps: Vec<&[T]> = vec![&[]; taps_y];

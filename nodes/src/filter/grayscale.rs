@@ -1,7 +1,6 @@
 //! `filter.grayscale`: colour to luma.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -183,7 +182,7 @@ fn integer_luma<T: IntegerSample, const S: usize, const CR: u32, const CG: u32, 
     let mut dst = ocellus_engine::buffer::zeroed::<T>(src.len() / S);
     dst.par_chunks_mut(PIXELS_PER_TASK)
         .zip(src.par_chunks(PIXELS_PER_TASK * S))
-        .for_each_dyn(&|(out, pixels)| {
+        .for_each(|(out, pixels)| {
             let round = 1u32 << (COEFF_BITS - 1);
             for (o, p) in out.iter_mut().zip(pixels.chunks_exact(S)) {
                 let y = p[0].into() * CR + p[1].into() * CG + p[2].into() * CB + round;
@@ -198,7 +197,7 @@ fn float_luma<const S: usize>(src: &[f32], weights: [f32; 3]) -> Vec<f32> {
     let mut dst = vec![0.0; src.len() / S];
     dst.par_chunks_mut(PIXELS_PER_TASK)
         .zip(src.par_chunks(PIXELS_PER_TASK * S))
-        .for_each_dyn(&|(out, pixels)| {
+        .for_each(|(out, pixels)| {
             let [wr, wg, wb] = weights;
             for (o, p) in out.iter_mut().zip(pixels.chunks_exact(S)) {
                 *o = wr * p[0] + wg * p[1] + wb * p[2];

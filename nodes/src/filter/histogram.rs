@@ -14,7 +14,6 @@
 //!   half to even), so u8 results match `cv2.equalizeHist` and `cv2.createCLAHE(...).apply`.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -174,7 +173,7 @@ fn apply_lut_u8(src: &[u8], lut: &[u8; 256]) -> Vec<u8> {
     let mut dst = ocellus_engine::buffer::zeroed::<u8>(src.len());
     dst.par_chunks_mut(1 << 16)
         .zip(src.par_chunks(1 << 16))
-        .for_each_dyn(&|(d, s)| {
+        .for_each(|(d, s)| {
             for (d, &v) in d.iter_mut().zip(s) {
                 *d = lut[v as usize];
             }
@@ -195,7 +194,7 @@ fn per_channel<T: Copy + Default + Send + Sync>(
     let colours = c.min(3);
     let planes: Vec<Vec<T>> = (0..colours)
         .into_par_iter()
-        .map_dyn(&|ch| {
+        .map(|ch| {
             let plane: Vec<T> = src.iter().skip(ch).step_by(c).copied().collect();
             f(&plane)
         })
@@ -237,7 +236,7 @@ fn shift_to_luma(src: &[u8], c: usize, new_luma: &[u8]) -> Vec<u8> {
     let mut dst = src.to_vec();
     dst.par_chunks_mut(c * 4096)
         .zip(new_luma.par_chunks(4096))
-        .for_each_dyn(&|(d, y)| {
+        .for_each(|(d, y)| {
             for (p, &ny) in d.chunks_exact_mut(c).zip(y) {
                 let exact =
                     (0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1])) + 0.114 * f32::from(p[2]);
@@ -466,7 +465,7 @@ fn clahe_plane<T: ClaheSample>(
     // One table of `bins` f32 levels per tile, row-major over the grid.
     let luts: Vec<Vec<f32>> = (0..tx * ty)
         .into_par_iter()
-        .map_dyn(&|k| {
+        .map(|k| {
             let (gx, gy) = (k % tx, k / tx);
             let mut hist = vec![0u64; bins];
             let cols = &columns[gx * tile_w..(gx + 1) * tile_w];
@@ -512,7 +511,7 @@ fn clahe_plane<T: ClaheSample>(
     let mut dst = ocellus_engine::buffer::zeroed::<T>(w * h);
     dst.par_chunks_mut(BAND_ROWS * w)
         .enumerate()
-        .for_each_dyn(&|(band, out)| {
+        .for_each(|(band, out)| {
             for (r, out_row) in out.chunks_exact_mut(w).enumerate() {
                 let y = band * BAND_ROWS + r;
                 let tyf = y as f32 * inv_th - 0.5;

@@ -8,7 +8,6 @@
 //! identical for any thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Depth, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -243,7 +242,7 @@ fn fill_mask<T: Copy + Sync>(
 ) {
     mask.par_chunks_mut(CHUNK_PIXELS)
         .zip(src.par_chunks(CHUNK_PIXELS * c))
-        .for_each_dyn(&|(m, s)| {
+        .for_each(|(m, s)| {
             for (o, p) in m.iter_mut().zip(s.chunks_exact(c)) {
                 *o = if test(p) { 255 } else { 0 };
             }
@@ -455,7 +454,7 @@ fn key_samples<T: KeySample>(
     mask.par_chunks_mut(CHUNK_PIXELS)
         .zip(rgba.par_chunks_mut(CHUNK_PIXELS * 4))
         .zip(src.par_chunks(CHUNK_PIXELS * c))
-        .for_each_dyn(&|((m, o), s)| {
+        .for_each(|((m, o), s)| {
             for ((m, o), p) in m
                 .iter_mut()
                 .zip(o.chunks_exact_mut(4))

@@ -13,7 +13,6 @@
 //!   bit-identical for any thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -376,7 +375,7 @@ fn bands<T: Sample, O: Copy + Default + Send, const C: usize>(
     let r = g.radius;
     dst.par_chunks_mut(BAND_ROWS * n)
         .enumerate()
-        .for_each_dyn(&|(b, out)| {
+        .for_each(|(b, out)| {
             let rows = out.len() / n;
             let y0 = b * BAND_ROWS;
             let mut padded = vec![constant; (rows + 2 * r) * stride];

@@ -42,7 +42,6 @@
 use std::cmp::Ordering;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
@@ -375,7 +374,7 @@ fn bands<T: Sample>(
     }
     dst.par_chunks_mut(BAND_ROWS * n)
         .enumerate()
-        .for_each_dyn(&|(b, out)| {
+        .for_each(|(b, out)| {
             let rows = out.len() / n;
             let padded = pad_band(src, g, b * BAND_ROWS, rows, constant, 0);
             band(&padded, g, out);
@@ -494,28 +493,26 @@ fn network<T: Sample, const L: usize>(
         return Ok(dst);
     }
     // Scratch buffers (padded rows, sorted runs) are reused across the bands a worker takes.
-    dst.par_chunks_mut(BAND_ROWS * n)
-        .enumerate()
-        .for_each_init_dyn(
-            &|| (Vec::new(), Vec::new()),
-            &|(pad_buffer, runs), (b, out)| {
-                let rows = out.len() / n;
-                if g.ksize == 3 {
-                    let buffer = std::mem::take(pad_buffer);
-                    let padded = pad_band_into(src, g, b * BAND_ROWS, rows, constant, L, buffer);
-                    network_band3::<T, L>(&padded, c, n, out);
-                    *pad_buffer = padded.data;
-                } else {
-                    let source = SourceRows {
-                        src,
-                        g,
-                        y0: b * BAND_ROWS,
-                        constant,
-                    };
-                    network_band5::<T, L>(&source, n, out, pad_buffer, runs);
-                }
-            },
-        );
+    dst.par_chunks_mut(BAND_ROWS * n).enumerate().for_each_init(
+        || (Vec::new(), Vec::new()),
+        |(pad_buffer, runs), (b, out)| {
+            let rows = out.len() / n;
+            if g.ksize == 3 {
+                let buffer = std::mem::take(pad_buffer);
+                let padded = pad_band_into(src, g, b * BAND_ROWS, rows, constant, L, buffer);
+                network_band3::<T, L>(&padded, c, n, out);
+                *pad_buffer = padded.data;
+            } else {
+                let source = SourceRows {
+                    src,
+                    g,
+                    y0: b * BAND_ROWS,
+                    constant,
+                };
+                network_band5::<T, L>(&source, n, out, pad_buffer, runs);
+            }
+        },
+    );
     Ok(dst)
 }
 

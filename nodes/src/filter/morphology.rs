@@ -32,7 +32,6 @@
 //! NaN in f32 input gives deterministic but unspecified results in windows containing it.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -1056,7 +1055,7 @@ fn extremum_bands<M: Extremum, T: Sample>(
         .enumerate()
         // Buffers are reused across the bands a worker takes; every sample read is written
         // first in each band, so reuse cannot change results.
-        .for_each_init_dyn(&BandBuffers::default, &|buffers, (band, out)| {
+        .for_each_init(BandBuffers::default, |buffers, (band, out)| {
             pass.run_rows::<M, T>(src, 0, band * band_rows, out, buffers);
         });
     dst
@@ -1096,17 +1095,15 @@ fn fused_bands<A: Extremum, B: Extremum, T: Sample>(
         return None;
     }
     let mut dst = ocellus_engine::buffer::zeroed::<T>(src.len());
-    dst.par_chunks_mut(band_rows * n)
-        .enumerate()
-        .for_each_init_dyn(
-            &|| (BandBuffers::default(), Vec::new()),
-            &|(buffers, stage), (band, out)| {
-                let (lo, hi) = ranges[band];
-                stage.resize((hi - lo) * n, T::default());
-                pass.run_rows::<A, T>(src, 0, lo, &mut stage[..(hi - lo) * n], buffers);
-                pass.run_rows::<B, T>(&stage[..(hi - lo) * n], lo, band * band_rows, out, buffers);
-            },
-        );
+    dst.par_chunks_mut(band_rows * n).enumerate().for_each_init(
+        || (BandBuffers::default(), Vec::new()),
+        |(buffers, stage), (band, out)| {
+            let (lo, hi) = ranges[band];
+            stage.resize((hi - lo) * n, T::default());
+            pass.run_rows::<A, T>(src, 0, lo, &mut stage[..(hi - lo) * n], buffers);
+            pass.run_rows::<B, T>(&stage[..(hi - lo) * n], lo, band * band_rows, out, buffers);
+        },
+    );
     Some(dst)
 }
 

@@ -11,7 +11,6 @@
 use std::f32::consts::TAU;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -264,9 +263,9 @@ fn noisy<T: Sample>(src: &[T], channels: Channels, model: NoiseModel, seed: u64)
         NoiseModel::Gaussian { sigma } => {
             let key = mix(seed ^ SALT_GAUSSIAN);
             let sigma = sigma as f32;
-            dst.par_chunks_mut(chunk).enumerate().for_each_init_dyn(
-                &|| vec![0.0f32; chunk],
-                &|z, (k, out)| {
+            dst.par_chunks_mut(chunk).enumerate().for_each_init(
+                || vec![0.0f32; chunk],
+                |z, (k, out)| {
                     let first = k * chunk;
                     let z = &mut z[..out.len().next_multiple_of(2)];
                     gaussian_pairs(key, first / 2, z);
@@ -287,46 +286,42 @@ fn noisy<T: Sample>(src: &[T], channels: Channels, model: NoiseModel, seed: u64)
         NoiseModel::SaltPepper { amount, salt_ratio } => {
             let impulse = mix(seed ^ SALT_IMPULSE);
             let polarity = mix(seed ^ SALT_POLARITY);
-            dst.par_chunks_mut(chunk)
-                .enumerate()
-                .for_each_dyn(&|(k, out)| {
-                    let first = k * CHUNK_PIXELS;
-                    for (p, px) in out.chunks_exact_mut(ch).enumerate() {
-                        let index = (first + p) as u64;
-                        if unit_f64(hash(impulse, index)) < amount {
-                            let value = if unit_f64(hash(polarity, index)) < salt_ratio {
-                                T::MAX
-                            } else {
-                                T::MIN
-                            };
-                            px[..noisy_channels].fill(value);
-                        }
+            dst.par_chunks_mut(chunk).enumerate().for_each(|(k, out)| {
+                let first = k * CHUNK_PIXELS;
+                for (p, px) in out.chunks_exact_mut(ch).enumerate() {
+                    let index = (first + p) as u64;
+                    if unit_f64(hash(impulse, index)) < amount {
+                        let value = if unit_f64(hash(polarity, index)) < salt_ratio {
+                            T::MAX
+                        } else {
+                            T::MIN
+                        };
+                        px[..noisy_channels].fill(value);
                     }
-                });
+                }
+            });
         }
         NoiseModel::Poisson { scale } => {
             let key = mix(seed ^ SALT_POISSON);
-            dst.par_chunks_mut(chunk)
-                .enumerate()
-                .for_each_dyn(&|(k, out)| {
-                    let first = k * chunk;
-                    for (p, px) in out.chunks_exact_mut(ch).enumerate() {
-                        for (c, o) in px[..noisy_channels].iter_mut().enumerate() {
-                            let index = (first + p * ch + c) as u64;
-                            let v = o.to_f64();
-                            let lambda = v * scale;
-                            if !lambda.is_finite() {
-                                continue;
-                            }
-                            let count = if lambda > 0.0 {
-                                poisson(lambda, &mut SplitMix(hash(key, index)))
-                            } else {
-                                0.0
-                            };
-                            *o = T::from_f64(count / scale);
+            dst.par_chunks_mut(chunk).enumerate().for_each(|(k, out)| {
+                let first = k * chunk;
+                for (p, px) in out.chunks_exact_mut(ch).enumerate() {
+                    for (c, o) in px[..noisy_channels].iter_mut().enumerate() {
+                        let index = (first + p * ch + c) as u64;
+                        let v = o.to_f64();
+                        let lambda = v * scale;
+                        if !lambda.is_finite() {
+                            continue;
                         }
+                        let count = if lambda > 0.0 {
+                            poisson(lambda, &mut SplitMix(hash(key, index)))
+                        } else {
+                            0.0
+                        };
+                        *o = T::from_f64(count / scale);
                     }
-                });
+                }
+            });
         }
     }
     dst

@@ -18,7 +18,6 @@
 use std::ops::{Add, Mul};
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params::NoParams;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
@@ -415,7 +414,7 @@ fn down<T: PyrSample>(src: &[T], w: usize, h: usize, c: usize) -> Vec<T> {
     let (k4, k6) = (T::k(4), T::k(6));
     dst.par_chunks_mut(n * BAND_ROWS)
         .enumerate()
-        .for_each_dyn(&|(band, out)| {
+        .for_each(|(band, out)| {
             let y0 = band * BAND_ROWS;
             let rows_out = out.len() / n;
             // Horizontal results of source rows 2·y0 − 2 ..= 2·(y0 + rows_out − 1) + 2.
@@ -522,7 +521,7 @@ fn up<T: PyrSample>(src: &[T], w: usize, h: usize, c: usize, dw: usize, dh: usiz
     let pairs = BAND_ROWS / 2;
     dst.par_chunks_mut(n * BAND_ROWS)
         .enumerate()
-        .for_each_dyn(&|(band, out)| {
+        .for_each(|(band, out)| {
             let y0 = band * pairs;
             let rows_out = out.len() / n;
             let pairs_here = rows_out.div_ceil(2);

@@ -21,7 +21,6 @@
 //!   other factors use per-axis tables of fractional pixel-area weights in f32.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -318,26 +317,24 @@ fn nearest(data: &PixelData, g: &Geometry) -> PixelData {
             .collect();
         let n = g.dw * c;
         let mut dst = ocellus_engine::buffer::zeroed::<T>(n * g.dh);
-        dst.par_chunks_mut(n)
-            .enumerate()
-            .for_each_dyn(&|(dy, out)| {
-                let sy = ((dy as f64 * g.scale_y).floor() as usize).min(g.sh - 1);
-                let row = &src[sy * g.sw * c..(sy + 1) * g.sw * c];
-                match c {
-                    1 => {
-                        for (o, &x) in out.iter_mut().zip(&xs) {
-                            *o = row.get(x).copied().unwrap_or_default();
-                        }
+        dst.par_chunks_mut(n).enumerate().for_each(|(dy, out)| {
+            let sy = ((dy as f64 * g.scale_y).floor() as usize).min(g.sh - 1);
+            let row = &src[sy * g.sw * c..(sy + 1) * g.sw * c];
+            match c {
+                1 => {
+                    for (o, &x) in out.iter_mut().zip(&xs) {
+                        *o = row.get(x).copied().unwrap_or_default();
                     }
-                    _ => {
-                        for (o, &x) in out.chunks_exact_mut(c).zip(&xs) {
-                            if let Some(p) = row.get(x..x + c) {
-                                o.copy_from_slice(p);
-                            }
+                }
+                _ => {
+                    for (o, &x) in out.chunks_exact_mut(c).zip(&xs) {
+                        if let Some(p) = row.get(x..x + c) {
+                            o.copy_from_slice(p);
                         }
                     }
                 }
-            });
+            }
+        });
         dst
     }
     match data {
@@ -569,7 +566,7 @@ where
     let mut dst = ocellus_engine::buffer::zeroed::<O>(n * g.dh);
     dst.par_chunks_mut(n * BAND_ROWS)
         .enumerate()
-        .for_each_dyn(&|(band, out)| {
+        .for_each(|(band, out)| {
             let mut ring: Vec<Vec<W>> = vec![vec![W::default(); n]; taps];
             let mut held: Vec<usize> = vec![usize::MAX; taps];
             for (i, line) in out.chunks_exact_mut(n).enumerate() {
@@ -858,28 +855,26 @@ fn blocks_int<T: Integer>(src: &[T], g: &Geometry, kx: usize, ky: usize) -> Vec<
     let (c, n, sn) = (g.c, g.dw * g.c, g.sw * g.c);
     let inv = (1.0 / (kx * ky) as f64) as f32;
     let mut dst = ocellus_engine::buffer::zeroed::<T>(n * g.dh);
-    dst.par_chunks_mut(n)
-        .enumerate()
-        .for_each_dyn(&|(dy, line)| {
-            let mut acc = vec![0u32; n];
-            for j in 0..ky {
-                let sy = dy * ky + j;
-                let row = &src[sy * sn..(sy + 1) * sn];
-                for (a, block) in acc.chunks_exact_mut(c).zip(row.chunks_exact(kx * c)) {
-                    for (ch, ac) in a.iter_mut().enumerate() {
-                        *ac += block
-                            .iter()
-                            .skip(ch)
-                            .step_by(c)
-                            .map(|&v| v.widen())
-                            .sum::<u32>();
-                    }
+    dst.par_chunks_mut(n).enumerate().for_each(|(dy, line)| {
+        let mut acc = vec![0u32; n];
+        for j in 0..ky {
+            let sy = dy * ky + j;
+            let row = &src[sy * sn..(sy + 1) * sn];
+            for (a, block) in acc.chunks_exact_mut(c).zip(row.chunks_exact(kx * c)) {
+                for (ch, ac) in a.iter_mut().enumerate() {
+                    *ac += block
+                        .iter()
+                        .skip(ch)
+                        .step_by(c)
+                        .map(|&v| v.widen())
+                        .sum::<u32>();
                 }
             }
-            for (o, a) in line.iter_mut().zip(acc) {
-                *o = T::from_f32(a as f32 * inv);
-            }
-        });
+        }
+        for (o, a) in line.iter_mut().zip(acc) {
+            *o = T::from_f32(a as f32 * inv);
+        }
+    });
     dst
 }
 
@@ -888,23 +883,21 @@ fn blocks_f32(src: &[f32], g: &Geometry, kx: usize, ky: usize) -> Vec<f32> {
     let (c, n, sn) = (g.c, g.dw * g.c, g.sw * g.c);
     let inv = (1.0 / (kx * ky) as f64) as f32;
     let mut dst = ocellus_engine::buffer::zeroed::<f32>(n * g.dh);
-    dst.par_chunks_mut(n)
-        .enumerate()
-        .for_each_dyn(&|(dy, line)| {
-            line.fill(0.0);
-            for j in 0..ky {
-                let sy = dy * ky + j;
-                let row = &src[sy * sn..(sy + 1) * sn];
-                for (a, block) in line.chunks_exact_mut(c).zip(row.chunks_exact(kx * c)) {
-                    for (ch, ac) in a.iter_mut().enumerate() {
-                        *ac += block.iter().skip(ch).step_by(c).sum::<f32>();
-                    }
+    dst.par_chunks_mut(n).enumerate().for_each(|(dy, line)| {
+        line.fill(0.0);
+        for j in 0..ky {
+            let sy = dy * ky + j;
+            let row = &src[sy * sn..(sy + 1) * sn];
+            for (a, block) in line.chunks_exact_mut(c).zip(row.chunks_exact(kx * c)) {
+                for (ch, ac) in a.iter_mut().enumerate() {
+                    *ac += block.iter().skip(ch).step_by(c).sum::<f32>();
                 }
             }
-            for o in line.iter_mut() {
-                *o *= inv;
-            }
-        });
+        }
+        for o in line.iter_mut() {
+            *o *= inv;
+        }
+    });
     dst
 }
 
@@ -943,32 +936,30 @@ fn area_general(data: &PixelData, g: &Geometry) -> PixelData {
         let (xs, xi, xw) = area_table(g.sw, g.dw, g.scale_x);
         let (ys, yi, yw) = area_table(g.sh, g.dh, g.scale_y);
         let mut dst = ocellus_engine::buffer::zeroed::<T>(n * g.dh);
-        dst.par_chunks_mut(n)
-            .enumerate()
-            .for_each_dyn(&|(dy, line)| {
-                let mut acc = vec![0f32; n];
-                let mut hrow = vec![0f32; n];
-                for k in ys[dy]..ys[dy + 1] {
-                    let sy = yi[k];
-                    let row = &src[sy * sn..(sy + 1) * sn];
-                    for (dx, o) in hrow.chunks_exact_mut(c).enumerate() {
-                        o.fill(0.0);
-                        for j in xs[dx]..xs[dx + 1] {
-                            let (sx, w) = (xi[j], xw[j]);
-                            for (ch, oc) in o.iter_mut().enumerate() {
-                                *oc += row[sx * c + ch].to_f32() * w;
-                            }
+        dst.par_chunks_mut(n).enumerate().for_each(|(dy, line)| {
+            let mut acc = vec![0f32; n];
+            let mut hrow = vec![0f32; n];
+            for k in ys[dy]..ys[dy + 1] {
+                let sy = yi[k];
+                let row = &src[sy * sn..(sy + 1) * sn];
+                for (dx, o) in hrow.chunks_exact_mut(c).enumerate() {
+                    o.fill(0.0);
+                    for j in xs[dx]..xs[dx + 1] {
+                        let (sx, w) = (xi[j], xw[j]);
+                        for (ch, oc) in o.iter_mut().enumerate() {
+                            *oc += row[sx * c + ch].to_f32() * w;
                         }
                     }
-                    let wy = yw[k];
-                    for (a, &h) in acc.iter_mut().zip(&hrow) {
-                        *a += h * wy;
-                    }
                 }
-                for (o, a) in line.iter_mut().zip(acc) {
-                    *o = T::from_f32(a);
+                let wy = yw[k];
+                for (a, &h) in acc.iter_mut().zip(&hrow) {
+                    *a += h * wy;
                 }
-            });
+            }
+            for (o, a) in line.iter_mut().zip(acc) {
+                *o = T::from_f32(a);
+            }
+        });
         dst
     }
     match data {

@@ -12,7 +12,6 @@
 //! path is taken only when no result can leave i16), so the results are bit-identical.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, PixelData, Value};
@@ -406,7 +405,7 @@ fn sum_u8_3tap(
         let mut dst = ocellus_engine::buffer::zeroed::<f32>(src.len());
         dst.par_chunks_mut(BAND_ROWS * n)
             .enumerate()
-            .for_each_dyn(&|(band, out)| {
+            .for_each(|(band, out)| {
                 let mut sums = vec![0i16; n + 2 * c];
                 for (r, line) in out.chunks_exact_mut(n).enumerate() {
                     for (t, &(kx, ky)) in kernels.iter().enumerate() {

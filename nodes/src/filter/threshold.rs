@@ -18,7 +18,6 @@
 //!   `cv2.threshold` returns.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -309,7 +308,7 @@ where
     let mut dst = ocellus_engine::buffer::zeroed::<T>(src.len());
     dst.par_chunks_mut(CHUNK)
         .zip(src.par_chunks(CHUNK))
-        .for_each_dyn(&|(d, s)| f(s, d));
+        .for_each(|(d, s)| f(s, d));
     dst
 }
 
@@ -596,7 +595,7 @@ pub fn adaptive_threshold(
             let (above, below) = if inverse { (0, max) } else { (max, 0) };
             mean.par_chunks_mut(CHUNK)
                 .zip(src.par_chunks(CHUNK))
-                .for_each_dyn(&|(m, s)| {
+                .for_each(|(m, s)| {
                     for (m, &s) in m.iter_mut().zip(s) {
                         *m = if i16::from(s) - i16::from(*m) > limit {
                             above

@@ -14,7 +14,6 @@
 //! through [`map_index`].
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, Matrix, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -572,7 +571,7 @@ fn run_nearest<T: Sample, C: SourceCoords>(src: &[T], g: &Geo, t: &C, o: &WarpOp
         return dst;
     }
     let constant = T::from_f32(o.border_value as f32);
-    dst.par_chunks_mut(n).enumerate().for_each_dyn(&|(y, out)| {
+    dst.par_chunks_mut(n).enumerate().for_each(|(y, out)| {
         let mut xs = vec![0f64; g.dw];
         let mut ys = vec![0f64; g.dw];
         t.row(y, &mut xs, &mut ys);
@@ -606,7 +605,7 @@ fn run_taps<T: Sample, C: SourceCoords, const TAPS: usize>(
     let constant = o.border_value as f32;
     let before = (TAPS / 2 - 1) as isize;
     let (wi, hi) = (w as isize, h as isize);
-    dst.par_chunks_mut(n).enumerate().for_each_dyn(&|(y, out)| {
+    dst.par_chunks_mut(n).enumerate().for_each(|(y, out)| {
         let mut xs = vec![0f64; g.dw];
         let mut ys = vec![0f64; g.dw];
         t.row(y, &mut xs, &mut ys);

@@ -25,7 +25,6 @@ use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Distortion, Image, Intrinsics, Metrics, Pose, Value};
 use ocellus_engine::{param_enum, params};
@@ -461,7 +460,7 @@ impl Problem for CalibrationProblem<'_> {
             .as_mut_slice()
             .par_chunks_mut(rows)
             .enumerate()
-            .for_each_dyn(&|(j, col)| {
+            .for_each(|(j, col)| {
                 let h = step_for(p[j]);
                 let mut pp = p.to_vec();
                 pp[j] = p[j] + h;
@@ -732,24 +731,22 @@ pub fn render_board_view(
     };
     let mut out = vec![0u8; width * height];
     if width > 0 {
-        out.par_chunks_mut(width)
-            .enumerate()
-            .for_each_dyn(&|(y, row)| {
-                for (x, px) in row.iter_mut().enumerate() {
-                    let mut acc = 0.0;
-                    for j in 0..s {
-                        for i in 0..s {
-                            let u = x as f64 - 0.5 + (i as f64 + 0.5) / s as f64;
-                            let v = y as f64 - 0.5 + (j as f64 + 0.5) / s as f64;
-                            acc += match lens.unproject([u, v]) {
-                                Some(ray) => shade(ray),
-                                None => board.background,
-                            };
-                        }
+        out.par_chunks_mut(width).enumerate().for_each(|(y, row)| {
+            for (x, px) in row.iter_mut().enumerate() {
+                let mut acc = 0.0;
+                for j in 0..s {
+                    for i in 0..s {
+                        let u = x as f64 - 0.5 + (i as f64 + 0.5) / s as f64;
+                        let v = y as f64 - 0.5 + (j as f64 + 0.5) / s as f64;
+                        acc += match lens.unproject([u, v]) {
+                            Some(ray) => shade(ray),
+                            None => board.background,
+                        };
                     }
-                    *px = (acc / (s * s) as f64).round().clamp(0.0, 255.0) as u8;
                 }
-            });
+                *px = (acc / (s * s) as f64).round().clamp(0.0, 255.0) as u8;
+            }
+        });
     }
     Image::from_u8(width, height, Channels::Gray, out).map_err(|e| e.to_string())
 }

@@ -16,7 +16,6 @@ use std::sync::Arc;
 
 use nalgebra::{Matrix3, Vector3};
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Camera, Channels, Image, Matrix, PixelData, Pose, Value};
 use ocellus_engine::{param_enum, params};
@@ -52,7 +51,7 @@ pub fn undistort_rectify_map(
             .par_chunks_mut(band)
             .zip(map_y.par_chunks_mut(band))
             .enumerate()
-            .for_each_dyn(&|(b, (mx, my))| {
+            .for_each(|(b, (mx, my))| {
                 for (i, (ox, oy)) in mx.iter_mut().zip(my.iter_mut()).enumerate() {
                     let at = b * band + i;
                     let (u, v) = ((at % width) as f64, (at / width) as f64);

@@ -7,7 +7,6 @@
 use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Matrix, Metrics, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -526,7 +525,7 @@ pub fn stitch(
     }
     let rows: Vec<RowResult> = (0..height)
         .into_par_iter()
-        .map_dyn(&|y| {
+        .map(|y| {
             let mut row = RowResult {
                 samples: vec![0.0; width * channels],
                 coverage: vec![0; width],

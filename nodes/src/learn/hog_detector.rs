@@ -9,7 +9,6 @@
 //! into disjoint slots; NMS and evaluation are sequential: bit-identical for any thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Descriptors, Image, Matrix, Metrics, PixelData, Value};
@@ -158,7 +157,7 @@ pub fn train_detector(
     let mw = mosaic.width();
     let rows: Vec<Vec<f64>> = (0..labels.len())
         .into_par_iter()
-        .map_dyn(&|i| {
+        .map(|i| {
             let (tx, ty) = ((i % cols) * ww, (i / cols) * wh);
             let px: Vec<f32> = (0..wh)
                 .flat_map(|y| {
@@ -280,7 +279,7 @@ pub fn detect(
         let w = &detector.weights;
         let scored: Vec<Detection> = (0..ox_n * oy_n)
             .into_par_iter()
-            .map_dyn(&|k| {
+            .map(|k| {
                 let (ox, oy) = ((k / oy_n) * stride, (k % oy_n) * stride);
                 let mut z = w[0];
                 let mut j = 1;

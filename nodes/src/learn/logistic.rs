@@ -12,7 +12,6 @@
 
 use nalgebra::{DMatrix, DVector};
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Matrix, Metrics, Value};
 use ocellus_engine::{param_enum, params};
@@ -158,7 +157,7 @@ fn hessian(design: &Design, theta: &[f64], l2: f64) -> DMatrix<f64> {
     let parts: Vec<Vec<f64>> = design
         .z
         .par_chunks(CHUNK * p)
-        .map_dyn(&|rows| {
+        .map(|rows| {
             let mut h = vec![0.0; p * p];
             for row in rows.chunks_exact(p) {
                 let s = sigmoid(dot(row, theta));
@@ -373,7 +372,7 @@ pub fn logistic_regression(
     let positives: Vec<usize> = if k == 2 { vec![1] } else { (0..k).collect() };
     let fits: Vec<BinaryFit> = positives
         .par_iter()
-        .map_dyn(&|&c| {
+        .map(|&c| {
             let t: Vec<f64> = labels
                 .iter()
                 .map(|&l| f64::from(u8::from(l == c)))

@@ -13,7 +13,6 @@ pub mod pedestrians;
 use std::sync::Arc;
 
 use ocellus_engine::op::OpError;
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::value::{Matrix, Value};
 use rayon::prelude::*;
 
@@ -140,7 +139,7 @@ where
         .z
         .par_chunks(CHUNK * p)
         .enumerate()
-        .map_dyn(&|(c, rows)| {
+        .map(|(c, rows)| {
             let mut g = vec![0.0; p];
             let mut loss = 0.0;
             for (k, row) in rows.chunks_exact(p).enumerate() {

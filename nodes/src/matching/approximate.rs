@@ -24,7 +24,6 @@ use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Match, Value};
@@ -292,7 +291,7 @@ fn approximate_knn2(
 ) -> Vec<Top2> {
     let trees: Vec<Tree> = (0..options.trees.max(1))
         .into_par_iter()
-        .map_dyn(&|k| {
+        .map(|k| {
             let mut rng = Rng(splitmix64(options.seed.wrapping_add(k as u64)));
             match train {
                 DescriptorRows::Float { dim, data } => {
@@ -317,7 +316,7 @@ fn approximate_knn2(
     let mut out = vec![Top2::default(); query.len()];
     out.par_chunks_mut(QUERY_CHUNK)
         .enumerate()
-        .for_each_dyn(&|(c, tops)| {
+        .for_each(|(c, tops)| {
             let mut stamp = vec![u32::MAX; nt];
             let mut heap = BinaryHeap::new();
             for (i, top) in tops.iter_mut().enumerate() {

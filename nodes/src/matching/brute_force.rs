@@ -22,7 +22,6 @@
 //!   depending only on its own data: results are identical for any thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Keypoint, Match, Matrix, Value};
@@ -466,7 +465,7 @@ pub fn knn2_restricted(
     let nt = train.len();
     out.par_chunks_mut(QUERY_CHUNK)
         .enumerate()
-        .for_each_dyn(&|(c, tops)| {
+        .for_each(|(c, tops)| {
             for (i, top) in tops.iter_mut().enumerate() {
                 let q = c * QUERY_CHUNK + i;
                 for t in 0..nt {
@@ -494,7 +493,7 @@ fn knn2_binary(q: &[u64], t: &[u64], words: usize) -> Vec<Top2> {
     let mut out = vec![Top2::default(); nq];
     out.par_chunks_mut(QUERY_CHUNK)
         .enumerate()
-        .for_each_dyn(&|(c, tops)| {
+        .for_each(|(c, tops)| {
             let q0 = c * QUERY_CHUNK;
             let mut best = vec![[u32::MAX, u32::MAX, u32::MAX, u32::MAX]; tops.len()];
             let mut dist = [0u32; TILE];
@@ -582,7 +581,7 @@ fn knn2_float(q: &[f32], t: &[f32], dim: usize) -> Vec<Top2> {
     let mut out = vec![Top2::default(); nq];
     out.par_chunks_mut(QUERY_CHUNK)
         .enumerate()
-        .for_each_dyn(&|(c, tops)| {
+        .for_each(|(c, tops)| {
             let q0 = c * QUERY_CHUNK;
             let n = tops.len();
             let n_pad = n.next_multiple_of(QR);

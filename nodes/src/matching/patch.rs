@@ -6,7 +6,6 @@
 //! count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, Keypoint, Match, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -255,7 +254,7 @@ pub fn match_patches(
     found
         .par_chunks_mut(CHUNK)
         .enumerate()
-        .for_each_dyn(&|(c, slots)| {
+        .for_each(|(c, slots)| {
             let mut patch = Vec::new();
             for (i, slot) in slots.iter_mut().enumerate() {
                 *slot = find_one(left, right, &points[c * CHUNK + i], options, &mut patch);

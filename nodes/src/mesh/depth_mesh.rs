@@ -22,7 +22,6 @@
 use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Mesh, Metrics, Pose, Value};
@@ -107,7 +106,7 @@ pub fn triangulate_organized(
     // Per row of quads: (triangles as grid indices, dropped for discontinuity, for grazing).
     let rows: Vec<(Vec<[u32; 3]>, usize, usize)> = (0..height.saturating_sub(1))
         .into_par_iter()
-        .map_dyn(&|y| {
+        .map(|y| {
             let mut tris = Vec::new();
             let (mut jump, mut grazing) = (0, 0);
             for x in 0..width.saturating_sub(1) {

@@ -27,7 +27,6 @@ use std::sync::Arc;
 
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Metrics, PointCloud, Value};
 use ocellus_engine::{param_enum, params};
@@ -151,7 +150,7 @@ pub fn require_points(n: usize, needed: usize) -> Result<(), PointCloudError> {
 pub fn par_map<T: Send>(n: usize, f: impl Fn(usize) -> T + Sync) -> Vec<T> {
     let chunks: Vec<Vec<T>> = (0..n.div_ceil(CHUNK))
         .into_par_iter()
-        .map_dyn(&|c| (c * CHUNK..((c + 1) * CHUNK).min(n)).map(&f).collect())
+        .map(|c| (c * CHUNK..((c + 1) * CHUNK).min(n)).map(&f).collect())
         .collect();
     chunks.into_iter().flatten().collect()
 }

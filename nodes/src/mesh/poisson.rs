@@ -46,7 +46,6 @@
 use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Mesh, Metrics, PointCloud, Value};
@@ -252,7 +251,7 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     let partial: Vec<f64> = a
         .par_chunks(CHUNK)
         .zip(b.par_chunks(CHUNK))
-        .map_dyn(&|(x, y)| x.iter().zip(y).map(|(p, q)| p * q).sum::<f64>())
+        .map(|(x, y)| x.iter().zip(y).map(|(p, q)| p * q).sum::<f64>())
         .collect();
     partial.iter().sum()
 }
@@ -284,34 +283,32 @@ impl System {
         let along: Vec<f64> = self
             .sample_corners
             .par_iter()
-            .map_dyn(&|c| {
+            .map(|c| {
                 c.iter()
                     .map(|&(i, w)| x.get(i as usize).map_or(0.0, |v| w * v))
                     .sum::<f64>()
             })
             .collect();
-        y.par_chunks_mut(CHUNK)
-            .enumerate()
-            .for_each_dyn(&|(c, out)| {
-                for (k, v) in out.iter_mut().enumerate() {
-                    let i = c * CHUNK + k;
-                    let mut s = 0.0;
-                    let mut degree = 0.0;
-                    for &j in &self.neighbors[i] {
-                        if j != OUTSIDE {
-                            degree += 1.0;
-                            if j != INACTIVE {
-                                s += x[j as usize];
-                            }
+        y.par_chunks_mut(CHUNK).enumerate().for_each(|(c, out)| {
+            for (k, v) in out.iter_mut().enumerate() {
+                let i = c * CHUNK + k;
+                let mut s = 0.0;
+                let mut degree = 0.0;
+                for &j in &self.neighbors[i] {
+                    if j != OUTSIDE {
+                        degree += 1.0;
+                        if j != INACTIVE {
+                            s += x[j as usize];
                         }
                     }
-                    let mut screen = 0.0;
-                    for &(smp, w) in &self.entries[self.offsets[i]..self.offsets[i + 1]] {
-                        screen += w * along[smp as usize];
-                    }
-                    *v = degree * x[i] - s + self.beta * screen;
                 }
-            });
+                let mut screen = 0.0;
+                for &(smp, w) in &self.entries[self.offsets[i]..self.offsets[i + 1]] {
+                    screen += w * along[smp as usize];
+                }
+                *v = degree * x[i] - s + self.beta * screen;
+            }
+        });
     }
 }
 
@@ -338,7 +335,7 @@ fn splat_depths(points: &[[f64; 3]], depth: u32, samples_per_node: f64) -> Vec<u
     let mut settled = vec![false; points.len()];
     for d in (0..=depth).rev() {
         let l = Level { res: 1 << d };
-        let corners: Vec<Corners> = points.par_iter().map_dyn(&|u| l.corners(u).1).collect();
+        let corners: Vec<Corners> = points.par_iter().map(|u| l.corners(u).1).collect();
         let mut splat: Vec<(usize, u32, f64)> = corners
             .iter()
             .enumerate()
@@ -422,7 +419,7 @@ fn build_system(
     let per_sample: Vec<([usize; 3], Corners)> = samples
         .points
         .par_iter()
-        .map_dyn(&|u| level.corners(u))
+        .map(|u| level.corners(u))
         .collect();
     let active: Vec<usize> = match band {
         None => (0..total).collect(),
@@ -455,7 +452,7 @@ fn build_system(
     }
     let neighbors: Vec<[u32; 6]> = active
         .par_iter()
-        .map_dyn(&|&g| {
+        .map(|&g| {
             let (x, y, z) = (g % n, (g / n) % n, g / (n * n));
             let coord = [x, y, z];
             let stride = [1, n, n * n];
@@ -512,7 +509,7 @@ fn build_system(
             .points
             .par_chunks(CHUNK)
             .enumerate()
-            .map_dyn(&|(c, pts)| {
+            .map(|(c, pts)| {
                 let mut nodes = Vec::new();
                 let mut out = Vec::new();
                 for (i, u) in pts.iter().enumerate() {
@@ -542,7 +539,7 @@ fn build_system(
     } else {
         (0..m)
             .into_par_iter()
-            .map_dyn(&|k| {
+            .map(|k| {
                 let mut v = [0.0; 3];
                 for &(s, w) in &entries[offsets[k]..offsets[k + 1]] {
                     let nrm = samples.normals[s as usize];
@@ -560,7 +557,7 @@ fn build_system(
     let scale = (level.res * level.res) as f64;
     let rhs: Vec<f64> = (0..m)
         .into_par_iter()
-        .map_dyn(&|k| {
+        .map(|k| {
             let mut b = 0.0;
             for a in 0..3 {
                 let own = field[k][a];
@@ -583,7 +580,7 @@ fn build_system(
         .collect();
     let diagonal: Vec<f64> = (0..m)
         .into_par_iter()
-        .map_dyn(&|k| {
+        .map(|k| {
             let degree = neighbors[k].iter().filter(|&&j| j != OUTSIDE).count() as f64;
             let screen: f64 = entries[offsets[k]..offsets[k + 1]]
                 .iter()
@@ -644,11 +641,11 @@ fn solve_level(
     let along: Vec<f64> = samples
         .points
         .par_iter()
-        .map_dyn(&|u| interpolate(level, chi_ro, u))
+        .map(|u| interpolate(level, chi_ro, u))
         .collect();
     let mut r: Vec<f64> = (0..m)
         .into_par_iter()
-        .map_dyn(&|k| {
+        .map(|k| {
             let g = sys.active[k];
             let mut s = 0.0;
             let mut degree = 0.0;
@@ -690,7 +687,7 @@ fn solve_level(
             .par_chunks_mut(CHUNK)
             .zip(r.par_chunks_mut(CHUNK))
             .zip(p.par_chunks(CHUNK).zip(q.par_chunks(CHUNK)))
-            .for_each_dyn(&|((d, r), (p, q))| {
+            .for_each(|((d, r), (p, q))| {
                 for (((d, r), p), q) in d.iter_mut().zip(r.iter_mut()).zip(p).zip(q) {
                     *d += step * p;
                     *r -= step * q;
@@ -700,7 +697,7 @@ fn solve_level(
         r_norm = dot(&r, &r).sqrt();
         z.par_chunks_mut(CHUNK)
             .zip(r.par_chunks(CHUNK).zip(sys.diagonal.par_chunks(CHUNK)))
-            .for_each_dyn(&|(z, (r, d))| {
+            .for_each(|(z, (r, d))| {
                 for ((z, r), d) in z.iter_mut().zip(r).zip(d) {
                     *z = r / d;
                 }
@@ -710,7 +707,7 @@ fn solve_level(
         rz = rz_new;
         p.par_chunks_mut(CHUNK)
             .zip(z.par_chunks(CHUNK))
-            .for_each_dyn(&|(p, z)| {
+            .for_each(|(p, z)| {
                 for (p, z) in p.iter_mut().zip(z) {
                     *p = z + ratio * *p;
                 }
@@ -739,7 +736,7 @@ fn prolong(coarse: Level, values: &[f64]) -> Vec<f64> {
     let mut out = vec![0.0; fine.count()];
     out.par_chunks_mut(nf * nf)
         .enumerate()
-        .for_each_dyn(&|(z, slab)| {
+        .for_each(|(z, slab)| {
             let tz = taps(z);
             for y in 0..nf {
                 let ty = taps(y);

@@ -31,7 +31,6 @@
 use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, Mesh, Metrics, PixelData, Pose, Value};
 use ocellus_engine::{param_enum, params};
@@ -598,12 +597,12 @@ impl TsdfVolume {
                 .par_chunks_mut(slab)
                 .zip(colors.par_chunks_mut(slab))
                 .enumerate()
-                .for_each_dyn(&|(k, (v, c))| integrate_slab(&g, k, v, Some(c), f, mu, max_weight)),
+                .for_each(|(k, (v, c))| integrate_slab(&g, k, v, Some(c), f, mu, max_weight)),
             None => self
                 .voxels
                 .par_chunks_mut(slab)
                 .enumerate()
-                .for_each_dyn(&|(k, v)| integrate_slab(&g, k, v, None, f, mu, max_weight)),
+                .for_each(|(k, v)| integrate_slab(&g, k, v, None, f, mu, max_weight)),
         }
         self.frames += 1;
     }
@@ -754,7 +753,7 @@ impl TsdfVolume {
         let keep: Vec<bool> = iso
             .triangles
             .par_iter()
-            .map_dyn(&|t| {
+            .map(|t| {
                 let mut c = [0.0; 3];
                 for &v in t {
                     let p = iso.positions.get(v as usize).copied().unwrap_or([0.0; 3]);
@@ -796,12 +795,12 @@ impl TsdfVolume {
             .collect();
         let normals: Vec<[f32; 3]> = positions
             .par_iter()
-            .map_dyn(&|p| self.normal_at(grid_coords(*p)))
+            .map(|p| self.normal_at(grid_coords(*p)))
             .collect();
         let colors = self.colors.as_ref().map(|cv| {
             positions
                 .par_iter()
-                .map_dyn(&|p| self.color_at(cv, grid_coords(*p)))
+                .map(|p| self.color_at(cv, grid_coords(*p)))
                 .collect()
         });
         Ok(FusedSurface {

@@ -43,7 +43,6 @@ use faer::sparse::linalg::cholesky::{
 };
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 use faer::{Conj, MatMut, Par, Side};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use rayon::prelude::*;
 
 use super::loss::RobustLoss;
@@ -420,7 +419,7 @@ fn cost(layout: &Layout, cameras: &[BaCamera], points: &[[f64; 3]], loss: Robust
         .obs
         .par_chunks(OBS_CHUNK)
         .zip(layout.weight.par_chunks(OBS_CHUNK))
-        .map_dyn(&|(obs, weight)| {
+        .map(|(obs, weight)| {
             let mut sum = 0.0;
             for (o, w) in obs.iter().zip(weight) {
                 let p = project(&cameras[o.camera as usize], &points[o.point as usize]);
@@ -439,7 +438,7 @@ pub fn squared_errors(problem: &BaProblem) -> Vec<f64> {
         .observations
         .par_iter()
         .with_min_len(OBS_CHUNK)
-        .map_dyn(&|o| {
+        .map(|o| {
             let p = project(
                 &problem.cameras[o.camera as usize],
                 &problem.points[o.point as usize],
@@ -489,7 +488,7 @@ fn linearize(
         .zip(jc.par_chunks_mut(OBS_CHUNK))
         .zip(jp.par_chunks_mut(OBS_CHUNK))
         .enumerate()
-        .map_dyn(&|(chunk, ((res, jc), jp))| {
+        .map(|(chunk, ((res, jc), jp))| {
             let base = chunk * OBS_CHUNK;
             let mut sum = 0.0;
             for k in 0..res.len() {
@@ -554,7 +553,7 @@ fn linearize(
     u.par_iter_mut()
         .zip(gc.par_iter_mut())
         .zip(layout.camera_obs.par_iter())
-        .for_each_dyn(&|((u, g), list)| {
+        .for_each(|((u, g), list)| {
             for &i in list {
                 let i = i as usize;
                 let (a, r) = (&jc[i], &res[i]);
@@ -577,7 +576,7 @@ fn linearize(
     v.par_chunks_mut(POINT_CHUNK)
         .zip(gp.par_chunks_mut(POINT_CHUNK))
         .enumerate()
-        .for_each_dyn(&|(chunk, (v, gp))| {
+        .for_each(|(chunk, (v, gp))| {
             for k in 0..v.len() {
                 let j = chunk * POINT_CHUNK + k;
                 let mut vv = [0.0; 9];
@@ -737,7 +736,7 @@ fn eliminate(
         .zip(q.par_chunks_mut(POINT_CHUNK))
         .zip(g_parts.into_par_iter())
         .enumerate()
-        .map_dyn(&|(chunk, ((l, q), g))| {
+        .map(|(chunk, ((l, q), g))| {
             let first = chunk * POINT_CHUNK;
             let obs_base = layout.point_start[first];
             for k in 0..l.len() {
@@ -785,7 +784,7 @@ fn eliminate(
     u.par_iter_mut()
         .zip(rhs.par_iter_mut())
         .enumerate()
-        .for_each_dyn(&|(c, (u, rhs))| {
+        .for_each(|(c, (u, rhs))| {
             let free = &layout.camera_free[c];
             let mut b = lin.gc[c].map(|v| -v);
             for &i in &layout.camera_obs[c] {
@@ -820,7 +819,7 @@ fn dense_schur(layout: &Layout, el: &Elimination) -> Vec<f64> {
     let mut s = vec![0.0; n * n];
     s.par_chunks_mut(CAMERA_DOF * n)
         .enumerate()
-        .for_each_dyn(&|(a, rows)| {
+        .for_each(|(a, rows)| {
             for p in 0..9 {
                 for q in 0..9 {
                     rows[p * n + 9 * a + q] = el.u[a][9 * p + q];
@@ -1062,9 +1061,9 @@ fn sparse_schur_solve(
     }
     // Each camera's columns: the same 9×9 block sums as `dense_schur`, in the same order, then
     // scattered to the free entries.
-    parts.into_par_iter().enumerate().for_each_init_dyn(
-        &|| vec![NO_SLOT; n_cam],
-        &|slot, (a, vals)| {
+    parts.into_par_iter().enumerate().for_each_init(
+        || vec![NO_SLOT; n_cam],
+        |slot, (a, vals)| {
             let list = &pattern.neighbours[a];
             if list.is_empty() {
                 return;
@@ -1169,7 +1168,7 @@ fn schur_apply(
 ) {
     z.par_chunks_mut(POINT_CHUNK)
         .enumerate()
-        .for_each_dyn(&|(chunk, z)| {
+        .for_each(|(chunk, z)| {
             for (k, zj) in z.iter_mut().enumerate() {
                 let j = chunk * POINT_CHUNK + k;
                 let mut acc = [0.0; 3];
@@ -1185,7 +1184,7 @@ fn schur_apply(
                 *zj = acc;
             }
         });
-    y.par_iter_mut().enumerate().for_each_dyn(&|(c, yc)| {
+    y.par_iter_mut().enumerate().for_each(|(c, yc)| {
         let u = &el.u[c];
         let xc = &x[c];
         let mut acc = [0.0; 9];
@@ -1208,7 +1207,7 @@ fn dot9(a: &[[f64; CAMERA_DOF]], b: &[[f64; CAMERA_DOF]]) -> f64 {
     let partial: Vec<f64> = a
         .par_chunks(POINT_CHUNK)
         .zip(b.par_chunks(POINT_CHUNK))
-        .map_dyn(&|(a, b)| {
+        .map(|(a, b)| {
             a.iter()
                 .zip(b)
                 .map(|(x, y)| x.iter().zip(y).map(|(p, q)| p * q).sum::<f64>())
@@ -1230,7 +1229,7 @@ fn iterative_schur(
     // Preconditioner blocks: U_aa + D − Σ G Gᵀ over camera a's observations.
     let blocks: Vec<Option<[f64; 81]>> = (0..n_cam)
         .into_par_iter()
-        .map_dyn(&|a| {
+        .map(|a| {
             let mut m = el.u[a];
             let free = &layout.camera_free[a];
             for &i in &layout.camera_obs[a] {
@@ -1249,7 +1248,7 @@ fn iterative_schur(
         .collect();
     let blocks: Vec<[f64; 81]> = blocks.into_iter().collect::<Option<Vec<_>>>()?;
     let precondition = |r: &[[f64; CAMERA_DOF]], out: &mut [[f64; CAMERA_DOF]]| {
-        out.par_iter_mut().enumerate().for_each_dyn(&|(c, o)| {
+        out.par_iter_mut().enumerate().for_each(|(c, o)| {
             let mut v = r[c];
             cholesky_solve(&blocks[c], 9, &mut v);
             *o = v;
@@ -1280,7 +1279,7 @@ fn iterative_schur(
         x.par_iter_mut()
             .zip(r.par_iter_mut())
             .zip(p.par_iter().zip(sp.par_iter()))
-            .for_each_dyn(&|((x, r), (p, sp))| {
+            .for_each(|((x, r), (p, sp))| {
                 for k in 0..9 {
                     x[k] += alpha * p[k];
                     r[k] -= alpha * sp[k];
@@ -1293,7 +1292,7 @@ fn iterative_schur(
         let rz_new = dot9(&r, &zp);
         let beta = rz_new / rz;
         rz = rz_new;
-        p.par_iter_mut().zip(zp.par_iter()).for_each_dyn(&|(p, z)| {
+        p.par_iter_mut().zip(zp.par_iter()).for_each(|(p, z)| {
             for k in 0..9 {
                 p[k] = z[k] + beta * p[k];
             }
@@ -1393,7 +1392,7 @@ fn compute_step(
     let mut dp = vec![[0.0; 3]; el.l.len()];
     dp.par_chunks_mut(POINT_CHUNK)
         .enumerate()
-        .for_each_dyn(&|(chunk, dp)| {
+        .for_each(|(chunk, dp)| {
             for (k, d) in dp.iter_mut().enumerate() {
                 let j = chunk * POINT_CHUNK + k;
                 let mut y = el.q[j].map(|v| -v);
@@ -1424,7 +1423,7 @@ fn compute_step(
 fn model_decrease(layout: &Layout, lin: &Linearization, step: &Step) -> f64 {
     let partial: Vec<f64> = (0..lin.res.len().div_ceil(OBS_CHUNK))
         .into_par_iter()
-        .map_dyn(&|chunk| {
+        .map(|chunk| {
             let end = ((chunk + 1) * OBS_CHUNK).min(lin.res.len());
             let mut sum = 0.0;
             for i in chunk * OBS_CHUNK..end {
@@ -1465,7 +1464,7 @@ fn apply_step(
     let cams: Vec<BaCamera> = cameras
         .par_iter()
         .zip(step.dc.par_iter())
-        .map_dyn(&|(c, d)| BaCamera {
+        .map(|(c, d)| BaCamera {
             rotation: rotate(&c.rotation, &d[0..3]),
             translation: [
                 c.translation[0] + d[3],

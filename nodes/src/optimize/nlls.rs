@@ -49,7 +49,6 @@ use faer::linalg::solvers::Solve;
 use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
 use nalgebra::{DMatrix, DVector};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use rayon::prelude::*;
 
 use super::loss::RobustLoss;
@@ -609,7 +608,7 @@ fn residual_cost(block: &ResidualBlock, values: &[&[f64]], residuals: &mut [f64]
 fn total_cost(residuals: &[ResidualBlock], values: &[&[f64]]) -> Option<f64> {
     let partial: Vec<Option<f64>> = residuals
         .par_chunks(RESIDUAL_CHUNK)
-        .map_dyn(&|chunk| {
+        .map(|chunk| {
             let mut sum = 0.0;
             let mut buffer = Vec::new();
             for block in chunk {
@@ -881,7 +880,7 @@ fn linearize(problem: &Problem, layout: &Layout, values: &[Vec<f64>]) -> Option<
     let plus_jacobians: Vec<Option<Vec<f64>>> = layout
         .variable_blocks
         .par_iter()
-        .map_dyn(&|&b| {
+        .map(|&b| {
             problem.blocks[b].manifold.as_ref().map(|m| {
                 let mut p = vec![0.0; m.ambient_size() * m.tangent_size()];
                 m.plus_jacobian(&values[b], &mut p);
@@ -894,7 +893,7 @@ fn linearize(problem: &Problem, layout: &Layout, values: &[Vec<f64>]) -> Option<
         .step_by(RESIDUAL_CHUNK)
         .collect::<Vec<usize>>()
         .into_par_iter()
-        .map_dyn(&|first| {
+        .map(|first| {
             let last = (first + RESIDUAL_CHUNK).min(n_res);
             let r0 = layout.residual_offsets[first];
             let j0 = layout.jacobian_offsets[first];
@@ -939,7 +938,7 @@ fn linearize(problem: &Problem, layout: &Layout, values: &[Vec<f64>]) -> Option<
     // Block pairs of JᵀJ, each summed over its contributions in residual order.
     let hessian_blocks: Vec<Vec<f64>> = (0..layout.pairs.len())
         .into_par_iter()
-        .map_dyn(&|p| {
+        .map(|p| {
             let (row, col) = layout.pairs[p];
             let (tr, tc) = (layout.tangent_sizes[row], layout.tangent_sizes[col]);
             let mut h = vec![0.0; tr * tc];
@@ -964,7 +963,7 @@ fn linearize(problem: &Problem, layout: &Layout, values: &[Vec<f64>]) -> Option<
     // Gradient Jᵀ r per variable block, over the residuals of its diagonal pair.
     let gradient_blocks: Vec<Vec<f64>> = (0..layout.variable_blocks.len())
         .into_par_iter()
-        .map_dyn(&|v| {
+        .map(|v| {
             let t = layout.tangent_sizes[v];
             let mut g = vec![0.0; t];
             let p = layout.diagonal_pair[v];
@@ -1018,7 +1017,7 @@ fn jacobian_step_norm_squared(layout: &Layout, lin: &Linearization, step: &[f64]
         .step_by(RESIDUAL_CHUNK)
         .collect::<Vec<usize>>()
         .into_par_iter()
-        .map_dyn(&|first| {
+        .map(|first| {
             let last = (first + RESIDUAL_CHUNK).min(n_res);
             let mut sum = 0.0;
             for i in first..last {
@@ -1198,7 +1197,7 @@ fn apply_step(
 ) -> Vec<Vec<f64>> {
     (0..values.len())
         .into_par_iter()
-        .map_dyn(&|b| {
+        .map(|b| {
             let x = &values[b];
             let Some(v) = layout.variable_of_block[b] else {
                 return x.clone();

@@ -47,7 +47,6 @@
 
 use std::f64::consts::PI;
 
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::value::{
     Channels, Image, Light, Material, Mesh, PixelData, Scene, Shading, Shape, Value,
 };
@@ -1315,7 +1314,7 @@ fn setup_objects(
                 let chunks: Vec<Vec<Prim>> = tris
                     .par_chunks(SETUP_CHUNK)
                     .enumerate()
-                    .map_dyn(&|(ci, chunk)| {
+                    .map(|(ci, chunk)| {
                         let mut v = Vec::with_capacity(chunk.len());
                         for (k, t) in chunk.iter().enumerate() {
                             let idx = t.map(|i| i as usize);
@@ -1382,7 +1381,7 @@ fn bin(prims: &[Prim], tiles: &Tiles, base: u32) -> Vec<Vec<u32>> {
     let parts: Vec<Vec<Vec<u32>>> = prims
         .par_chunks(BIN_CHUNK)
         .enumerate()
-        .map_dyn(&|(ci, chunk)| {
+        .map(|(ci, chunk)| {
             let mut bins = vec![Vec::new(); tiles.count()];
             for (k, p) in chunk.iter().enumerate() {
                 let idx = base + (ci * BIN_CHUNK + k) as u32;
@@ -1398,7 +1397,7 @@ fn bin(prims: &[Prim], tiles: &Tiles, base: u32) -> Vec<Vec<u32>> {
         .collect();
     (0..tiles.count())
         .into_par_iter()
-        .map_dyn(&|t| {
+        .map(|t| {
             let mut v = Vec::with_capacity(parts.iter().map(|p| p[t].len()).sum());
             for p in &parts {
                 v.extend_from_slice(&p[t]);
@@ -1589,7 +1588,7 @@ impl ShadowMap {
         let bins = bin(&prims, &tiles, 0);
         let keys: Vec<Vec<f64>> = (0..tiles.count())
             .into_par_iter()
-            .map_dyn(&|t| {
+            .map(|t| {
                 let rect = tiles.rect(t);
                 let mut key = vec![f64::NEG_INFINITY; TT];
                 for &i in &bins[t] {
@@ -1792,7 +1791,7 @@ impl CubeMap {
         let n = size;
         let base: Vec<V3> = (0..6 * n * n)
             .into_par_iter()
-            .map_dyn(&|i| {
+            .map(|i| {
                 let f = i / (n * n);
                 let (j, k) = ((i % (n * n)) / n, i % n);
                 let s = 2.0 * (k as f64 + 0.5) / n as f64 - 1.0;
@@ -2661,9 +2660,7 @@ impl<'a> SceneRaster<'a> {
         };
         let outs: Vec<TileOut> = (0..tiles.count())
             .into_par_iter()
-            .map_dyn(&|t| {
-                renderer.render_tile(tiles.rect(t), &opaque_bins[t], &transparent_bins[t])
-            })
+            .map(|t| renderer.render_tile(tiles.rect(t), &opaque_bins[t], &transparent_bins[t]))
             .collect();
         let (w, h) = (view.width, view.height);
         let mut out = RasterOutput {
@@ -2716,7 +2713,7 @@ pub fn coverage_counts(
     let bins = bin(&prims, &tiles, 0);
     let counts: Vec<Vec<u32>> = (0..tiles.count())
         .into_par_iter()
-        .map_dyn(&|t| {
+        .map(|t| {
             let mut c = vec![0u32; TT];
             for &i in &bins[t] {
                 cover(

@@ -3,7 +3,6 @@
 
 use std::sync::Arc;
 
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::value::{Bvh, Channels, Image, PixelData};
 use ocellus_engine::{
     Inputs, Op, OpError, Operator, Outputs, PortSpec, PortType, RunContext, Value,
@@ -225,7 +224,7 @@ pub fn raycast_depth(bvh: &Bvh, camera: &LookAtCamera) -> (Vec<f32>, usize) {
     let tiles = tiles_x * h.div_ceil(TILE);
     let traced: Vec<(Vec<f32>, usize)> = (0..tiles)
         .into_par_iter()
-        .map_dyn(&|tile| {
+        .map(|tile| {
             let (x0, y0) = ((tile % tiles_x) * TILE, (tile / tiles_x) * TILE);
             let (x1, y1) = ((x0 + TILE).min(w), (y0 + TILE).min(h));
             let mut depth = Vec::with_capacity((x1 - x0) * (y1 - y0));

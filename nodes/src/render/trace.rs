@@ -50,7 +50,6 @@
 use std::f64::consts::PI;
 use std::sync::Arc;
 
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::value::{
     Channels, Image, Light, Material, Mesh, PixelData, Pose, Scene, Shape, Texture,
 };
@@ -1854,7 +1853,7 @@ pub fn render_trace(
     let inv_spp = 1.0 / spp as f64;
     let traced: Vec<Vec<PixelOut>> = (0..tiles)
         .into_par_iter()
-        .map_dyn(&|tile| {
+        .map(|tile| {
             let (x0, y0) = ((tile % tiles_x) * TILE, (tile / tiles_x) * TILE);
             let (x1, y1) = ((x0 + TILE).min(w), (y0 + TILE).min(h));
             let mut out = Vec::with_capacity((x1 - x0) * (y1 - y0));

@@ -17,7 +17,6 @@ use ocellus_engine::op::{
     Inputs, Op, OpError, Operator, Outputs, Packet, PortSpec, RunContext, SequenceState,
     run_sequence_batch,
 };
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Depth, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -466,7 +465,7 @@ impl BackgroundSubtractor {
                 mean.par_chunks_mut(BAND_PIXELS * c)
                     .zip(levels.par_chunks(BAND_PIXELS * c))
                     .zip(mask.par_chunks_mut(BAND_PIXELS))
-                    .for_each_dyn(&|((b, x), m)| average_step(b, x, m, c, alpha, t));
+                    .for_each(|((b, x), m)| average_step(b, x, m, c, alpha, t));
             }
             Model::Gaussian { mean, var } => {
                 // RMS over channels of the z-scores: Σ_c d²/σ² against c·k².
@@ -475,7 +474,7 @@ impl BackgroundSubtractor {
                     .zip(var.par_chunks_mut(BAND_PIXELS * c))
                     .zip(levels.par_chunks(BAND_PIXELS * c))
                     .zip(mask.par_chunks_mut(BAND_PIXELS))
-                    .for_each_dyn(&|(((mu, v), x), m)| gaussian_step(mu, v, x, m, c, alpha, k2));
+                    .for_each(|(((mu, v), x), m)| gaussian_step(mu, v, x, m, c, alpha, k2));
             }
             Model::Mog { comps } => {
                 let stride = cfg.n_gaussians * (c + 2);
@@ -489,7 +488,7 @@ impl BackgroundSubtractor {
                     .par_chunks_mut(BAND_PIXELS * stride)
                     .zip(levels.par_chunks(BAND_PIXELS * c))
                     .zip(mask.par_chunks_mut(BAND_PIXELS))
-                    .for_each_dyn(&|((g, x), m)| band(g, x, m, cfg, alpha));
+                    .for_each(|((g, x), m)| band(g, x, m, cfg, alpha));
             }
         }
         Image::from_u8(self.width, self.height, Channels::Gray, mask).map_err(|e| e.to_string())

@@ -21,7 +21,6 @@
 use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Matrix, PixelData, Value};
@@ -293,7 +292,7 @@ fn label_mask<T: Mask>(
     }
     let bands: Vec<Band> = src
         .par_chunks(BAND_ROWS * width)
-        .map_dyn(&|chunk| scan_band(chunk, width, eight))
+        .map(|chunk| scan_band(chunk, width, eight))
         .collect();
 
     // Global union-find over all runs, bands concatenated in order.
@@ -342,7 +341,7 @@ fn label_mask<T: Mask>(
     labels
         .par_chunks_mut(BAND_ROWS * width)
         .zip(bands.par_iter().zip(offsets.par_iter()))
-        .for_each_dyn(&|(out, (band, &offset))| {
+        .for_each(|(out, (band, &offset))| {
             for (r, row) in out.chunks_exact_mut(width).enumerate() {
                 let mut x = 0usize;
                 for i in band.row_start[r]..band.row_start[r + 1] {

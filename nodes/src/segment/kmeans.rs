@@ -11,7 +11,6 @@
 use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Depth, Image, Matrix, Metrics, PixelData, Value};
@@ -344,7 +343,7 @@ fn update_distances(
     let partials: Vec<f64> = out
         .par_chunks_mut(CHUNK)
         .enumerate()
-        .map_dyn(&|(ci, chunk)| {
+        .map(|(ci, chunk)| {
             let base = ci * CHUNK;
             let mut s = 0f64;
             for (j, o) in chunk.iter_mut().enumerate() {
@@ -382,7 +381,7 @@ fn assign(data: &[f32], c: usize, centers: &[f32], labels: &mut [u32]) {
     labels
         .par_chunks_mut(CHUNK)
         .zip(data.par_chunks(CHUNK * c))
-        .for_each_dyn(&|(l, d)| {
+        .for_each(|(l, d)| {
             for (label, x) in l.iter_mut().zip(d.chunks_exact(c)) {
                 *label = nearest(x, centers, c);
             }
@@ -395,7 +394,7 @@ fn mean_centers(data: &[f32], c: usize, k: usize, labels: &mut [u32], old: &[f32
     let partials: Vec<(Vec<f64>, Vec<u64>)> = labels
         .par_chunks(CHUNK)
         .zip(data.par_chunks(CHUNK * c))
-        .map_dyn(&|(l, d)| {
+        .map(|(l, d)| {
             let mut sums = vec![0f64; k * c];
             let mut counts = vec![0u64; k];
             for (&label, x) in l.iter().zip(d.chunks_exact(c)) {
@@ -473,7 +472,7 @@ fn compactness(data: &[f32], c: usize, centers: &[f32], labels: &[u32]) -> f64 {
     let partials: Vec<f64> = labels
         .par_chunks(CHUNK)
         .zip(data.par_chunks(CHUNK * c))
-        .map_dyn(&|(l, d)| {
+        .map(|(l, d)| {
             l.iter()
                 .zip(d.chunks_exact(c))
                 .map(|(&j, x)| {

@@ -8,7 +8,6 @@
 //! parallel: the output does not depend on the thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -141,7 +140,7 @@ impl Padded {
         let mut data = vec![0.0f32; stride * (height + 2 * PAD)];
         data.par_chunks_mut(stride)
             .enumerate()
-            .for_each_dyn(&|(py, row)| {
+            .for_each(|(py, row)| {
                 let y = mirror(py as isize - PAD as isize, height);
                 for (px, o) in row.iter_mut().enumerate() {
                     *o = plane[y * width + mirror(px as isize - PAD as isize, width)];
@@ -219,7 +218,7 @@ fn linear(
     let mut out = vec![0.0f32; width * height * 3];
     out.par_chunks_mut(width * 3)
         .enumerate()
-        .for_each_dyn(&|(y, row)| {
+        .for_each(|(y, row)| {
             for (x, px) in row.chunks_exact_mut(3).enumerate() {
                 for (target, o) in px.iter_mut().enumerate() {
                     *o = match case(filters, pattern, x, y, target) {
@@ -241,7 +240,7 @@ fn hamilton_adams(padded: &Padded, width: usize, height: usize, pattern: BayerPa
     green
         .par_chunks_mut(width)
         .enumerate()
-        .for_each_dyn(&|(y, row)| {
+        .for_each(|(y, row)| {
             for (x, g) in row.iter_mut().enumerate() {
                 let c = padded.at(x, y, 0, 0);
                 if pattern.color_at(x, y) == GREEN {
@@ -268,7 +267,7 @@ fn hamilton_adams(padded: &Padded, width: usize, height: usize, pattern: BayerPa
     let mut out = vec![0.0f32; width * height * 3];
     out.par_chunks_mut(width * 3)
         .enumerate()
-        .for_each_dyn(&|(y, row)| {
+        .for_each(|(y, row)| {
             for (x, px) in row.chunks_exact_mut(3).enumerate() {
                 let own = pattern.color_at(x, y);
                 let g = green.at(x, y, 0, 0);

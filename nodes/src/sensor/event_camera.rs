@@ -16,7 +16,6 @@ use ocellus_engine::op::{
     Inputs, Op, OpError, Operator, Outputs, Packet, PortSpec, RunContext, SequenceState,
     run_sequence_batch,
 };
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Matrix, Metrics, PixelData, Value};
@@ -186,7 +185,7 @@ impl EventSimulator {
             .par_chunks_mut(width)
             .zip(log_frame.par_chunks(width))
             .enumerate()
-            .map_dyn(&|(y, (states, logs))| {
+            .map(|(y, (states, logs))| {
                 let mut events = Vec::new();
                 let mut suppressed = 0;
                 for (x, (state, &l1)) in states.iter_mut().zip(logs).enumerate() {
@@ -224,7 +223,7 @@ impl EventSimulator {
         self.pixels = log_frame
             .par_iter()
             .enumerate()
-            .map_dyn(&|(i, &l)| {
+            .map(|(i, &l)| {
                 // One Box–Muller pair per pixel: positive and negative thresholds.
                 let mut z = [0.0f32; 2];
                 gaussian_pairs(key, i, &mut z);

@@ -5,7 +5,6 @@
 //! The algorithm is [`radiance_from_dn`]; [`RadiometricCorrect`] is the thin operator.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Value};
@@ -63,7 +62,7 @@ pub fn radiance_from_dn(image: &Image, response: &SensorResponse, black_level_dn
     let mut out = vec![0.0f32; width * height * stride];
     out.par_chunks_mut((width * stride).max(1))
         .enumerate()
-        .for_each_dyn(&|(y, row)| {
+        .for_each(|(y, row)| {
             for (x, px) in row.chunks_exact_mut(stride).enumerate() {
                 let scale = 1.0 / (gain * response.electrons_per_unit_at(x, y, width, height));
                 let first = (y * width + x) * stride;

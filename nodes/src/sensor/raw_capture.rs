@@ -12,7 +12,6 @@
 //! count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Metrics, PixelData, Value};
@@ -124,7 +123,7 @@ pub fn capture_raw(radiance: &Image, model: &CaptureModel, seed: u64) -> (Vec<u1
     let rows: Vec<(f64, usize)> = raw
         .par_chunks_mut(width.max(1))
         .enumerate()
-        .map_dyn(&|(y, out)| {
+        .map(|(y, out)| {
             let first = y * width;
             // Read-noise deviates come in Box–Muller pairs indexed by pixel / 2.
             let first_pair = first / 2;

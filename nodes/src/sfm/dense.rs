@@ -48,7 +48,6 @@ use std::sync::Arc;
 
 use nalgebra::{Matrix3, Vector3};
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{
@@ -802,7 +801,7 @@ pub fn dense_depth(
     }
     let rays: Vec<_> = views
         .par_iter()
-        .map_dyn(&|v| pixel_rays(&v.lens, v.gray.width, v.gray.height))
+        .map(|v| pixel_rays(&v.lens, v.gray.width, v.gray.height))
         .collect();
     let dominant = dominant_planes(points, options.dominant_planes);
     let plans: Vec<(Vec<usize>, Vec<PlaneFamily>)> = (0..views.len())
@@ -816,16 +815,14 @@ pub fn dense_depth(
     let raw: Vec<Vec<f32>> = plans
         .par_iter()
         .enumerate()
-        .map_dyn(&|(r, (sources, families))| {
-            sweep_view(views, &rays, r, sources, families, options)
-        })
+        .map(|(r, (sources, families))| sweep_view(views, &rays, r, sources, families, options))
         .collect();
     let filtered: Vec<Vec<f32>> = if options.min_consistent == 0 {
         raw.clone()
     } else {
         (0..views.len())
             .into_par_iter()
-            .map_dyn(&|r| {
+            .map(|r| {
                 let agree = consistent_views(views, &rays, &raw, r, options);
                 raw[r]
                     .iter()

@@ -19,7 +19,6 @@
 
 use std::sync::Arc;
 
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::value::{
     Camera, Channels, Descriptors, Image, Keypoint, Match, Matrix, Metrics, Pose, Value,
 };
@@ -183,7 +182,7 @@ pub fn select_pairs(
             // Similarity score of every ordered pair, then each image's best `neighbors`.
             let scores: Vec<Vec<usize>> = (0..n)
                 .into_par_iter()
-                .map_dyn(&|i| {
+                .map(|i| {
                     (0..n)
                         .map(|j| {
                             if i == j {
@@ -384,7 +383,7 @@ pub fn match_pairs(
     };
     pairs
         .par_iter()
-        .map_dyn(&|&(i, j)| {
+        .map(|&(i, j)| {
             let matches = if keypoints[i].is_empty() || keypoints[j].is_empty() {
                 Vec::new()
             } else {

@@ -41,7 +41,6 @@
 //! transforms for computing visual correspondence", ECCV 1994 (census).
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, PixelData, Value};
 use ocellus_engine::{param_enum, params};
@@ -314,9 +313,9 @@ pub fn census(plane: &[f32], w: usize, h: usize, block: usize) -> Vec<u64> {
         return out;
     }
     let pw = w + 2 * r;
-    out.par_chunks_mut(w)
-        .enumerate()
-        .for_each_init_dyn(&|| vec![0f32; block * pw], &|rows, (y, word_row)| {
+    out.par_chunks_mut(w).enumerate().for_each_init(
+        || vec![0f32; block * pw],
+        |rows, (y, word_row)| {
             // The window's rows, padded by r on both sides with the border samples.
             for (i, dst) in rows.chunks_exact_mut(pw).enumerate() {
                 let sy = (y + i).saturating_sub(r).min(h - 1);
@@ -326,7 +325,8 @@ pub fn census(plane: &[f32], w: usize, h: usize, block: usize) -> Vec<u64> {
                 }
             }
             census_row(rows, pw, w, block, word_row);
-        });
+        },
+    );
     out
 }
 
@@ -478,7 +478,7 @@ fn reversed_byte_planes(words: &[u64], w: usize, planes: usize) -> Vec<u8> {
     }
     out.par_chunks_mut(w * planes)
         .zip(words.par_chunks(w))
-        .for_each_dyn(&|(dst, row)| {
+        .for_each(|(dst, row)| {
             for (p, plane) in dst.chunks_exact_mut(w).enumerate() {
                 for (b, &word) in plane.iter_mut().zip(row.iter().rev()) {
                     *b = (word >> (8 * p)) as u8;
@@ -1089,7 +1089,7 @@ fn window_moments(padded: &[f32], w: usize, h: usize, r: usize) -> (Vec<f64>, Ve
     s.par_chunks_mut(w)
         .zip(s2.par_chunks_mut(w))
         .enumerate()
-        .for_each_dyn(&|(y, (s, s2))| {
+        .for_each(|(y, (s, s2))| {
             for x in 0..w {
                 let (mut a, mut a2) = (0f64, 0f64);
                 for i in 0..b {
@@ -1348,7 +1348,7 @@ pub fn disparity_map(
             let planes = BmPlanes::new(left, right, w, h, o);
             disp.par_chunks_mut(w * ROWS_PER_TASK)
                 .enumerate()
-                .for_each_dyn(&|(t, dst)| {
+                .for_each(|(t, dst)| {
                     let mut costs = vec![0f32; row];
                     for (i, d) in dst.chunks_mut(w).enumerate() {
                         bm_costs_row(&planes, t * ROWS_PER_TASK + i, o, &mut costs);

@@ -31,7 +31,6 @@
 use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, Mesh, Metrics, PixelData, Pose, Value};
 use ocellus_engine::{param_enum, params};
@@ -330,7 +329,7 @@ pub fn visual_hull(
     field
         .par_chunks_mut(nx * ny)
         .enumerate()
-        .for_each_dyn(&|(k, slab)| {
+        .for_each(|(k, slab)| {
             let z = origin[2] + k as f64 * h;
             for j in 0..ny {
                 let y = origin[1] + j as f64 * h;

@@ -10,7 +10,6 @@
 //! [`patch_match_rms`], the distance of the output's patches to their nearest source patches.
 
 use ocellus_engine::op::{OpError, Outputs, PortSpec};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Metrics, PixelData, Value};
 use rayon::prelude::*;
@@ -160,7 +159,7 @@ pub fn patch_match_rms(
         .collect();
     let best: Vec<f64> = positions
         .par_iter()
-        .map_dyn(&|&(ox, oy)| {
+        .map(|&(ox, oy)| {
             let mut best = f64::INFINITY;
             for sy in 0..=source.height - p {
                 for sx in 0..=source.width - p {

@@ -13,7 +13,6 @@ use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector};
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Matrix, Metrics, Value};
 use ocellus_engine::{param_enum, params};
@@ -447,7 +446,7 @@ pub fn ksvd(
     let code_all = |dictionary: &Dictionary| -> Vec<SparseCode> {
         signals
             .par_iter()
-            .map_dyn(&|s| omp(dictionary, s, max_atoms, error_target))
+            .map(|s| omp(dictionary, s, max_atoms, error_target))
             .collect()
     };
     let residual_of = |dictionary: &Dictionary, code: &SparseCode, s: &[f64]| -> Vec<f64> {
@@ -622,7 +621,7 @@ pub fn denoise_plane(
     for band in ys.chunks(BAND_PATCH_ROWS) {
         let coded: Vec<Vec<(Vec<f64>, usize)>> = band
             .par_iter()
-            .map_dyn(&|&y| {
+            .map(|&y| {
                 xs.iter()
                     .map(|&x| {
                         let code =

@@ -11,7 +11,6 @@
 use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Channels, Image, Matrix, Value};
 use ocellus_engine::{param_enum, params};
@@ -251,7 +250,7 @@ pub fn block_match(
     vectors
         .par_chunks_mut(columns)
         .enumerate()
-        .for_each_dyn(&|(by, row)| {
+        .for_each(|(by, row)| {
             for (bx, out) in row.iter_mut().enumerate() {
                 *out = match_block(
                     &a,

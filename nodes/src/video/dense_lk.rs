@@ -9,7 +9,6 @@
 //! output sample depends only on its inputs, so results are bit-identical for any thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::value::{Channels, Image};
 use rayon::prelude::*;
@@ -227,7 +226,7 @@ pub fn flow_lk(previous: &Image, next: &Image, settings: &LkSettings) -> Result<
             bx.par_chunks_mut(BAND_ROWS * lw)
                 .zip(by.par_chunks_mut(BAND_ROWS * lw))
                 .enumerate()
-                .for_each_dyn(&|(band, (ox, oy))| {
+                .for_each(|(band, (ox, oy))| {
                     let start = band * BAND_ROWS * lw;
                     for (k, (px, py)) in ox.iter_mut().zip(oy.iter_mut()).enumerate() {
                         let i = start + k;
@@ -242,7 +241,7 @@ pub fn flow_lk(previous: &Image, next: &Image, settings: &LkSettings) -> Result<
             f.u.par_chunks_mut(BAND_ROWS * lw)
                 .zip(f.v.par_chunks_mut(BAND_ROWS * lw))
                 .enumerate()
-                .for_each_dyn(&|(band, (fu, fv))| {
+                .for_each(|(band, (fu, fv))| {
                     let start = band * BAND_ROWS * lw;
                     for (k, (u, v)) in fu.iter_mut().zip(fv.iter_mut()).enumerate() {
                         let i = start + k;
@@ -279,7 +278,7 @@ fn inverse_tensors(
     let mut out = vec![[0.0f32; 3]; w * h];
     out.par_chunks_mut(BAND_ROWS * w)
         .enumerate()
-        .for_each_dyn(&|(band, rows)| {
+        .for_each(|(band, rows)| {
             let start = band * BAND_ROWS * w;
             for (k, o) in rows.iter_mut().enumerate() {
                 let i = start + k;

@@ -11,7 +11,6 @@
 //! How it runs: every pass works on fixed bands of [`BAND_ROWS`] rows in parallel and each
 //! output sample depends only on its inputs, so results are bit-identical for any thread count.
 
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::value::{Channels, Image, PixelData};
 use rayon::prelude::*;
 
@@ -206,7 +205,7 @@ pub fn upsample(flow: &FlowField, width: usize, height: usize, coarse: &FlowLeve
         .par_chunks_mut(BAND_ROWS * width)
         .zip(out.v.par_chunks_mut(BAND_ROWS * width))
         .enumerate()
-        .for_each_dyn(&|(band, (bu, bv))| {
+        .for_each(|(band, (bu, bv))| {
             for (r, (ru, rv)) in bu
                 .chunks_exact_mut(width)
                 .zip(bv.chunks_exact_mut(width))
@@ -238,7 +237,7 @@ pub fn warp<const K: usize>(planes: [&Plane; K], flow: &FlowField) -> Vec<([f32;
     let (xmax, ymax) = ((w - 1) as f32, (h - 1) as f32);
     out.par_chunks_mut(BAND_ROWS * w)
         .enumerate()
-        .for_each_dyn(&|(band, rows)| {
+        .for_each(|(band, rows)| {
             for (r, row) in rows.chunks_exact_mut(w).enumerate() {
                 let y = band * BAND_ROWS + r;
                 let fu = &flow.u[y * w..][..w];
@@ -364,7 +363,7 @@ pub fn flow_to_color(flow: &FlowField) -> Result<Image, String> {
     data.par_chunks_mut(3 * flow.width.max(1) * BAND_ROWS)
         .zip(flow.u.par_chunks(flow.width.max(1) * BAND_ROWS))
         .zip(flow.v.par_chunks(flow.width.max(1) * BAND_ROWS))
-        .for_each_dyn(&|((out, bu), bv)| {
+        .for_each(|((out, bu), bv)| {
             for ((px, &u), &v) in out.chunks_exact_mut(3).zip(bu).zip(bv) {
                 let (u, v) = (u * norm, v * norm);
                 if !u.is_finite() || !v.is_finite() {

@@ -3,7 +3,6 @@
 //! Conversion: u8 as is; u16 `v / 257`; f32 `v · 255` (NaN read as 0); RGB / RGBA by BT.601
 //! luma `0.299 R + 0.587 G + 0.114 B` after the per-sample conversion (alpha ignored).
 
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::value::{Channels, Image, PixelData};
 use rayon::prelude::*;
 
@@ -140,7 +139,7 @@ pub fn gradients(plane: &Plane) -> Result<(Plane, Plane), String> {
         gx.par_chunks_mut(BAND_ROWS * w)
             .zip(gy.par_chunks_mut(BAND_ROWS * w))
             .enumerate()
-            .for_each_dyn(&|(band, (bx, by))| {
+            .for_each(|(band, (bx, by))| {
                 // Padded vertical smoothing (3, 10, 3) and difference rows.
                 let mut smooth = vec![0.0f32; w + 2];
                 let mut diff = vec![0.0f32; w + 2];

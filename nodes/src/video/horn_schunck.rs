@@ -12,7 +12,6 @@
 //! bit-identical for any thread count.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, Value};
@@ -306,7 +305,7 @@ fn linearise(
     let inv_a2 = 1.0 / alpha2;
     out.par_chunks_mut(BAND_ROWS * w)
         .enumerate()
-        .for_each_dyn(&|(band, rows)| {
+        .for_each(|(band, rows)| {
             for (r, row) in rows.chunks_exact_mut(w).enumerate() {
                 let y = band * BAND_ROWS + r;
                 for (x, c) in row.iter_mut().enumerate() {
@@ -380,7 +379,7 @@ fn solve(
                 .par_chunks_mut(BAND_ROWS * w)
                 .zip(nxt.1.par_chunks_mut(BAND_ROWS * w))
                 .enumerate()
-                .for_each_dyn(&|(band, (bu, bv))| {
+                .for_each(|(band, (bu, bv))| {
                     for (r, (ou, ov)) in bu
                         .chunks_exact_mut(w)
                         .zip(bv.chunks_exact_mut(w))

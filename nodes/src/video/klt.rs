@@ -14,7 +14,6 @@
 use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, Keypoint, Matrix, Value};
@@ -327,7 +326,7 @@ pub fn track_klt(
     let mut out = vec![lost(&[0.0, 0.0]); points.len()];
     out.par_chunks_mut(CHUNK)
         .zip(points.par_chunks(CHUNK))
-        .for_each_dyn(&|(tracks, pts)| {
+        .for_each(|(tracks, pts)| {
             let mut scratch = Scratch::new(settings.window);
             for (t, p) in tracks.iter_mut().zip(pts) {
                 *t = lost(p);

@@ -6,7 +6,6 @@
 //! every block is computed by the same arithmetic whatever thread runs it.
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, Value};
@@ -172,7 +171,7 @@ pub fn dct_plane(plane: &[f32], w: usize, h: usize, inverse: bool) -> Vec<f32> {
     }
     out.par_chunks_mut(BLOCK * w)
         .zip(plane.par_chunks(BLOCK * w))
-        .for_each_dyn(&|(dst, src)| {
+        .for_each(|(dst, src)| {
             for bx in (0..w).step_by(BLOCK) {
                 // tmp = X·Mᵀ: row r of tmp = Σ_n X[r][n] · Mᵀ[n].
                 let mut tmp = [[0.0f32; BLOCK]; BLOCK];

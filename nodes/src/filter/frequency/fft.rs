@@ -18,7 +18,6 @@
 use std::sync::Arc;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::Value;
@@ -231,7 +230,7 @@ pub fn log_magnitude(re: &[f32], im: &[f32]) -> Vec<f32> {
     let mut out = ocellus_engine::buffer::zeroed::<f32>(re.len());
     out.par_chunks_mut(1 << 14)
         .zip(re.par_chunks(1 << 14).zip(im.par_chunks(1 << 14)))
-        .for_each_dyn(&|(o, (r, i))| {
+        .for_each(|(o, (r, i))| {
             for ((o, &r), &i) in o.iter_mut().zip(r).zip(i) {
                 *o = r.hypot(i).ln_1p();
             }
@@ -269,7 +268,7 @@ pub fn fft2d(plane: &[f32], width: usize, height: usize, centered: bool) -> (Vec
     re.par_chunks_mut(width * TILE)
         .zip(im.par_chunks_mut(width * TILE))
         .enumerate()
-        .for_each_dyn(&|(b, (re_band, im_band))| {
+        .for_each(|(b, (re_band, im_band))| {
             let rows = re_band.len() / width;
             let mut ys = [0usize; TILE];
             let mut mirrored = [0usize; TILE];
@@ -342,7 +341,7 @@ pub fn ifft2d(re: &[f32], im: &[f32], width: usize, height: usize, centered: boo
     spectrum
         .par_chunks_mut(width)
         .enumerate()
-        .for_each_dyn(&|(y, row)| {
+        .for_each(|(y, row)| {
             let src = ((y + sy) % height) * width;
             let (re, im) = (&re[src..src + width], &im[src..src + width]);
             // Column x reads (x + sx) mod W: two contiguous runs.
@@ -361,7 +360,7 @@ pub fn ifft2d(re: &[f32], im: &[f32], width: usize, height: usize, centered: boo
     // Transpose back, keeping the real part.
     out.par_chunks_mut(width * TILE)
         .enumerate()
-        .for_each_dyn(&|(b, band)| {
+        .for_each(|(b, band)| {
             let y0 = b * TILE;
             let rows = band.len() / width;
             let mut tile = [[0.0f32; TILE]; TILE];
@@ -395,14 +394,14 @@ pub(crate) fn real_spectrum_half(
     let mut rows = vec![Complex32::default(); height * half];
     rows.par_chunks_mut(half * BAND_ROWS)
         .enumerate()
-        .for_each_init_dyn(
-            &|| {
+        .for_each_init(
+            || {
                 (
                     vec![Complex32::default(); width],
                     vec![Complex32::default(); scratch_len],
                 )
             },
-            &|(z, scratch), (b, band)| {
+            |(z, scratch), (b, band)| {
                 let y0 = b * BAND_ROWS;
                 for (p, pair) in band.chunks_mut(2 * half).enumerate() {
                     let ya = y0 + 2 * p;
@@ -463,14 +462,14 @@ pub(crate) fn real_from_spectrum_half(
     let mut out = ocellus_engine::buffer::zeroed::<f32>(width * height);
     out.par_chunks_mut(width * BAND_ROWS)
         .enumerate()
-        .for_each_init_dyn(
-            &|| {
+        .for_each_init(
+            || {
                 (
                     vec![Complex32::default(); width],
                     vec![Complex32::default(); scratch_len],
                 )
             },
-            &|(z, scratch), (b, band)| {
+            |(z, scratch), (b, band)| {
                 let y0 = b * BAND_ROWS;
                 for (p, pair) in band.chunks_mut(2 * width).enumerate() {
                     let ya = y0 + 2 * p;
@@ -512,9 +511,9 @@ pub(crate) fn fft_rows(buf: &mut [Complex32], len: usize, fft: &Arc<dyn Fft<f32>
         return;
     }
     let scratch_len = fft.get_inplace_scratch_len();
-    buf.par_chunks_mut(len * BAND_ROWS).for_each_init_dyn(
-        &|| vec![Complex32::default(); scratch_len],
-        &|scratch, band| fft.process_with_scratch(band, scratch),
+    buf.par_chunks_mut(len * BAND_ROWS).for_each_init(
+        || vec![Complex32::default(); scratch_len],
+        |scratch, band| fft.process_with_scratch(band, scratch),
     );
 }
 
@@ -531,7 +530,7 @@ pub(crate) fn transpose<T: Copy + Default + Send + Sync>(
     }
     dst.par_chunks_mut(rows * TILE)
         .enumerate()
-        .for_each_dyn(&|(b, band)| {
+        .for_each(|(b, band)| {
             let c0 = b * TILE;
             let band_cols = band.len() / rows;
             // Through a local tile: rows of `src` are read and rows of `dst` written

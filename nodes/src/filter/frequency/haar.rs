@@ -10,7 +10,6 @@
 use std::f32::consts::FRAC_1_SQRT_2;
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::params;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, Value};
@@ -156,14 +155,17 @@ fn forward_rows(plane: &mut [f32], w: usize, lw: usize, lh: usize) {
     plane[..lh * w]
         .par_chunks_mut(w)
         .with_min_len(8)
-        .for_each_init_dyn(&|| vec![0.0f32; lw], &|tmp, row| {
-            let (lo, hi) = tmp.split_at_mut(half);
-            for ((pair, l), h) in row[..lw].chunks_exact(2).zip(lo).zip(hi) {
-                *l = (pair[0] + pair[1]) * FRAC_1_SQRT_2;
-                *h = (pair[0] - pair[1]) * FRAC_1_SQRT_2;
-            }
-            row[..lw].copy_from_slice(tmp);
-        });
+        .for_each_init(
+            || vec![0.0f32; lw],
+            |tmp, row| {
+                let (lo, hi) = tmp.split_at_mut(half);
+                for ((pair, l), h) in row[..lw].chunks_exact(2).zip(lo).zip(hi) {
+                    *l = (pair[0] + pair[1]) * FRAC_1_SQRT_2;
+                    *h = (pair[0] - pair[1]) * FRAC_1_SQRT_2;
+                }
+                row[..lw].copy_from_slice(tmp);
+            },
+        );
 }
 
 /// Inverse of [`forward_rows`].
@@ -172,14 +174,17 @@ fn inverse_rows(plane: &mut [f32], w: usize, lw: usize, lh: usize) {
     plane[..lh * w]
         .par_chunks_mut(w)
         .with_min_len(8)
-        .for_each_init_dyn(&|| vec![0.0f32; lw], &|tmp, row| {
-            let (lo, hi) = row[..lw].split_at(half);
-            for ((pair, &l), &h) in tmp.chunks_exact_mut(2).zip(lo).zip(hi) {
-                pair[0] = (l + h) * FRAC_1_SQRT_2;
-                pair[1] = (l - h) * FRAC_1_SQRT_2;
-            }
-            row[..lw].copy_from_slice(tmp);
-        });
+        .for_each_init(
+            || vec![0.0f32; lw],
+            |tmp, row| {
+                let (lo, hi) = row[..lw].split_at(half);
+                for ((pair, &l), &h) in tmp.chunks_exact_mut(2).zip(lo).zip(hi) {
+                    pair[0] = (l + h) * FRAC_1_SQRT_2;
+                    pair[1] = (l - h) * FRAC_1_SQRT_2;
+                }
+                row[..lw].copy_from_slice(tmp);
+            },
+        );
 }
 
 /// Columns: rows (2i, 2i + 1) → rows i (low) and lh/2 + i (high), over columns `0..lw`.
@@ -190,7 +195,7 @@ fn forward_columns(plane: &mut [f32], w: usize, lw: usize, lh: usize) {
         .zip(bottom.par_chunks_mut(w))
         .enumerate()
         .with_min_len(8)
-        .for_each_dyn(&|(i, (lo, hi))| {
+        .for_each(|(i, (lo, hi))| {
             let a = &src[2 * i * w..2 * i * w + lw];
             let b = &src[(2 * i + 1) * w..(2 * i + 1) * w + lw];
             for (((l, h), &a), &b) in lo[..lw].iter_mut().zip(&mut hi[..lw]).zip(a).zip(b) {
@@ -208,7 +213,7 @@ fn inverse_columns(plane: &mut [f32], w: usize, lw: usize, lh: usize) {
         .par_chunks_mut(2 * w)
         .enumerate()
         .with_min_len(4)
-        .for_each_dyn(&|(i, pair)| {
+        .for_each(|(i, pair)| {
             let lo = &src[i * w..i * w + lw];
             let hi = &src[(half + i) * w..(half + i) * w + lw];
             let (a, b) = pair.split_at_mut(w);

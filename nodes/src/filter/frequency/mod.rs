@@ -12,7 +12,6 @@ pub mod haar;
 pub mod pass;
 
 use ocellus_engine::op::OpError;
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::value::{Channels, Image, PixelData, ValueError};
 use rayon::prelude::*;
 
@@ -45,7 +44,7 @@ fn extract<T: Copy + Sync>(
         plane
             .par_chunks_mut(CONVERT_CHUNK)
             .zip(data.par_chunks(CONVERT_CHUNK))
-            .for_each_dyn(&|(dst, src)| {
+            .for_each(|(dst, src)| {
                 for (d, &s) in dst.iter_mut().zip(src) {
                     *d = convert(s);
                 }
@@ -54,7 +53,7 @@ fn extract<T: Copy + Sync>(
         plane
             .par_chunks_mut(CONVERT_CHUNK)
             .zip(data.par_chunks(CONVERT_CHUNK * channels))
-            .for_each_dyn(&|(dst, src)| {
+            .for_each(|(dst, src)| {
                 for (d, px) in dst.iter_mut().zip(src.chunks_exact(channels)) {
                     *d = convert(px[channel]);
                 }
@@ -78,7 +77,7 @@ pub fn from_planes(
         let mut data = vec![0.0f32; width * height * count];
         data.par_chunks_mut(CONVERT_CHUNK * count)
             .enumerate()
-            .for_each_dyn(&|(i, dst)| {
+            .for_each(|(i, dst)| {
                 let start = i * CONVERT_CHUNK;
                 for (c, plane) in planes.iter().enumerate() {
                     let Some(src) = plane.get(start..start + dst.len() / count) else {

@@ -8,7 +8,6 @@
 //! period of a periodic signal (the spatial equivalent uses a `wrap` border).
 
 use ocellus_engine::op::{Inputs, Op, OpError, Operator, Outputs, PortSpec, RunContext};
-use ocellus_engine::par::ParallelIteratorDyn as _;
 use ocellus_engine::types::PortType;
 use ocellus_engine::value::{Image, Value, ValueError};
 use ocellus_engine::{param_enum, params};
@@ -218,9 +217,9 @@ pub fn filter_plane(
         .map(|&f2| (-f2 / (2.0 * cutoff * cutoff)).exp())
         .collect();
     // Row u of `columns` is F(u, 0..H), u ≤ W/2, so fu = u/W.
-    columns.par_chunks_mut(h).enumerate().for_each_init_dyn(
-        &|| vec![0.0f32; h],
-        &|gains, (u, row)| {
+    columns.par_chunks_mut(h).enumerate().for_each_init(
+        || vec![0.0f32; h],
+        |gains, (u, row)| {
             let fu = u as f64 / w as f64;
             if kind == FilterKind::Gaussian {
                 // Separable: exp(−(fu² + fv²)/2D0²) = exp(−fu²/2D0²) · exp(−fv²/2D0²).
