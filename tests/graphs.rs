@@ -51,9 +51,6 @@ const SNAPSHOTTED: &[&str] = &[
     "two_view.ron",
 ];
 
-/// Graphs with an `animation` section: the CLI writes their outputs frame by frame.
-const ANIMATED: &[&str] = &["animate.ron", "tour.ron"];
-
 fn outputs(graph: &str, threads: usize) -> Vec<(String, Value)> {
     let registry = ocellus_nodes::builtin_registry().unwrap();
     // Animated graphs give each output as a list over their frames; the others run once.
@@ -66,9 +63,19 @@ fn outputs(graph: &str, threads: usize) -> Vec<(String, Value)> {
     .unwrap_or_else(|e| panic!("{graph}: {e}"))
 }
 
+/// Whether `graph` has an `animation` section: the CLI then writes its outputs frame by frame.
+fn is_animated(graph: &str) -> bool {
+    let registry = ocellus_nodes::builtin_registry().unwrap();
+    let path = root().join("graphs").join(graph);
+    ocellus_engine::timeline::load_animated_file(&registry, &path, &[])
+        .unwrap_or_else(|e| panic!("{graph}: {e}"))
+        .1
+        .is_some()
+}
+
 fn check_graph(graph: &str) {
     let stem = graph.trim_end_matches(".ron");
-    if ANIMATED.contains(&graph) {
+    if is_animated(graph) {
         let summary = ocellus_engine::summary::summarize_outputs(&outputs(graph, 2));
         insta::assert_snapshot!(stem, summary);
         check_emitted_files(graph, &[]);
